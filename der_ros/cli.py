@@ -1,0 +1,69 @@
+"""The ``der`` command line: one entry point, one subcommand per job.
+
+Each subcommand lives in its own module that defines ``add_arguments(parser)`` and
+``run(args) -> int``; modules are imported only when their subcommand runs, so ``der --help``
+stays fast and a ROS-free install can still train.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from der_ros import __version__
+from der_ros.configuration import ConfigError
+
+#: name -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("der_ros.train.train_cli", "train a DQN agent (uniform / PER / DER replay) on one environment"),
+    "table1": ("der_ros.experiments.table1", "reproduce the paper's Table 1 (CartPole) over several seeds"),
+    "table2": ("der_ros.experiments.table2", "run the paper's Table 2 (Atari) protocol"),
+    "table3": ("der_ros.experiments.table3", "reproduce the paper's Table 3 (SUMO ring and urban) over several seeds"),
+    "graph": ("der_ros.graph.graph_cli", "run the ROS 2 graph: SUMO bridge, DER agent and MCAP recorder"),
+    "replay": ("der_ros.bag.replay_cli", "inspect, plot, export, train from and play recorded MCAP bags"),
+    "bench": ("der_ros.bench_cli", "run a benchmark script from bench/"),
+    "networks": ("sumo_bridge.network_cli", "build (or rebuild) the SUMO networks shipped with der_ros"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="der", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"der_ros {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_module, help_text) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    # Parse only up to the subcommand; the subcommand's module builds the rest of its parser.
+    top, rest = parser.parse_known_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(top.verbose, 2) if top.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if top.command is None:
+        parser.print_help()
+        return 2
+    module_name, help_text = SUBCOMMANDS[top.command]
+    module = importlib.import_module(module_name)
+    sub_parser = argparse.ArgumentParser(prog=f"der {top.command}", description=help_text)
+    module.add_arguments(sub_parser)
+    args = sub_parser.parse_args(rest)
+    try:
+        return int(module.run(args) or 0)
+    except ConfigError as exc:
+        print(f"der {top.command}: configuration error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"der {top.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,325 @@
+"""Typed configuration dataclasses: declaration, validation, YAML loading.
+
+Every component has one frozen-free ``@dataclass`` config whose fields are declared with
+:func:`param`, which records a help text and the allowed range/choices in the field's
+metadata. The same metadata drives
+
+* validation (:func:`validate`) with errors that name the field, the value and what was
+  expected,
+* YAML loading (:func:`load_yaml`, :func:`from_dict`) that rejects unknown keys and wrong
+  types before any work starts, naming the file,
+* CLI flags (:func:`add_dataclass_arguments`) and ROS parameter descriptors (the node
+  adapters read :func:`field_specs`).
+
+Nested dataclasses are allowed (a field whose type is another config dataclass).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import MISSING, dataclass, fields, is_dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+__all__ = [
+    "ConfigError",
+    "FieldSpec",
+    "param",
+    "validate",
+    "from_dict",
+    "to_dict",
+    "load_yaml",
+    "save_yaml",
+    "field_specs",
+    "add_dataclass_arguments",
+    "apply_overrides",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid. The message names the source, the key and the value."""
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """What :func:`param` records about one config field."""
+
+    name: str
+    type: Any
+    default: Any
+    help: str
+    low: float | None = None
+    high: float | None = None
+    low_inclusive: bool = True
+    high_inclusive: bool = True
+    choices: tuple[Any, ...] | None = None
+    nullable: bool = False
+
+    def describe_range(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        parts = []
+        if self.low is not None:
+            parts.append(f"{'>=' if self.low_inclusive else '>'} {self.low}")
+        if self.high is not None:
+            parts.append(f"{'<=' if self.high_inclusive else '<'} {self.high}")
+        return " and ".join(parts) if parts else "any value"
+
+
+def param(
+    default: Any = MISSING,
+    help: str = "",
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_inclusive: bool = True,
+    high_inclusive: bool = True,
+    choices: typing.Iterable[Any] | None = None,
+    default_factory: Any = MISSING,
+) -> Any:
+    """Declare a documented, range-checked config field.
+
+    ``help`` becomes the CLI help and the ROS ``ParameterDescriptor.description``.
+    ``low``/``high`` bound numeric values, ``choices`` restricts to a set.
+    """
+    if not help:
+        raise TypeError("every config field needs a help text")
+    meta = {
+        "help": help,
+        "low": low,
+        "high": high,
+        "low_inclusive": low_inclusive,
+        "high_inclusive": high_inclusive,
+        "choices": tuple(choices) if choices is not None else None,
+    }
+    if default_factory is not MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _resolved_hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        nullable = len(args) != len(typing.get_args(tp))
+        if len(args) == 1:
+            return args[0], nullable
+        return typing.Union[tuple(args)], nullable  # noqa: UP007
+    return tp, False
+
+
+def field_specs(cls_or_obj: Any) -> list[FieldSpec]:
+    """The :class:`FieldSpec` of every field of a config dataclass (not recursing)."""
+    cls = cls_or_obj if isinstance(cls_or_obj, type) else type(cls_or_obj)
+    hints = _resolved_hints(cls)
+    out = []
+    for f in fields(cls):
+        tp, nullable = _unwrap_optional(hints[f.name])
+        meta = f.metadata
+        if f.default is not MISSING:
+            default = f.default
+        elif f.default_factory is not MISSING:
+            default = f.default_factory()
+        else:
+            default = MISSING
+        out.append(
+            FieldSpec(
+                name=f.name,
+                type=tp,
+                default=default,
+                help=meta.get("help", ""),
+                low=meta.get("low"),
+                high=meta.get("high"),
+                low_inclusive=meta.get("low_inclusive", True),
+                high_inclusive=meta.get("high_inclusive", True),
+                choices=meta.get("choices"),
+                nullable=nullable,
+            )
+        )
+    return out
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, spec: FieldSpec, where: str) -> Any:
+    """Check (and minimally coerce: int -> float, list -> tuple) one value against its spec."""
+    tp = spec.type
+    if value is None:
+        if spec.nullable:
+            return None
+        raise ConfigError(f"{where}: {spec.name} = None, expected {_type_name(tp)}")
+    if is_dataclass(tp):
+        if is_dataclass(value) and isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a mapping for {tp.__name__}")
+        return from_dict(tp, value, source=f"{where}: {spec.name}")
+    origin = typing.get_origin(tp)
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a list")
+        args = typing.get_args(tp)
+        item_tp = args[0] if args else Any
+        items = []
+        for i, item in enumerate(value):
+            if item_tp is not Any and item_tp is not Ellipsis:
+                sub = dataclasses.replace(spec, name=f"{spec.name}[{i}]", type=item_tp, choices=None)
+                item = _coerce(item, sub, where)
+            items.append(item)
+        return tuple(items) if origin is tuple else items
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected true or false")
+    elif tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                raise ConfigError(f"{where}: {spec.name} = {value!r}, expected an integer")
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a number")
+        value = float(value)
+        if math.isnan(value):
+            raise ConfigError(f"{where}: {spec.name} = nan, expected a number")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a string")
+    if spec.choices is not None and value not in spec.choices:
+        raise ConfigError(f"{where}: {spec.name} = {value!r}, expected {spec.describe_range()}")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        bad = False
+        if spec.low is not None:
+            bad |= value < spec.low if spec.low_inclusive else value <= spec.low
+        if spec.high is not None:
+            bad |= value > spec.high if spec.high_inclusive else value >= spec.high
+        if bad:
+            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected {spec.describe_range()}")
+    return value
+
+
+def validate(obj: Any, source: str = "config") -> Any:
+    """Check every field of ``obj`` (recursively) in place; returns ``obj``.
+
+    Calls ``obj.check()`` afterwards if the class defines it (for cross-field rules).
+    """
+    for spec in field_specs(obj):
+        value = getattr(obj, spec.name)
+        setattr(obj, spec.name, _coerce(value, spec, source))
+    check = getattr(obj, "check", None)
+    if callable(check):
+        try:
+            check()
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+    return obj
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None, source: str = "config") -> T:
+    """Build and validate a config dataclass from a mapping; unknown keys are errors."""
+    data = dict(data or {})
+    specs = {s.name: s for s in field_specs(cls)}
+    unknown = sorted(set(data) - set(specs))
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown key {unknown[0]!r} (value {data[unknown[0]]!r}); "
+            f"known keys of {cls.__name__}: {', '.join(sorted(specs))}"
+        )
+    kwargs = {}
+    for name, spec in specs.items():
+        if name in data:
+            kwargs[name] = _coerce(data[name], spec, source)
+        elif spec.default is MISSING:
+            raise ConfigError(f"{source}: required key {name!r} is missing")
+    obj = cls(**kwargs)
+    return validate(obj, source)
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """A plain (YAML-safe) dict of a config dataclass, recursively."""
+    out: dict[str, Any] = {}
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        if is_dataclass(v):
+            v = to_dict(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[f.name] = v
+    return out
+
+
+def load_yaml(path: str | Path, cls: type[T], section: str | None = None) -> T:
+    """Load ``cls`` from a YAML file (optionally from one top-level ``section`` of it)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    source = str(path)
+    if section is not None:
+        data = data.get(section, {})
+        source = f"{path} [{section}]"
+    return from_dict(cls, data, source=source)
+
+
+def save_yaml(obj: Any, path: str | Path) -> None:
+    """Write a config dataclass as YAML (atomically)."""
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(yaml.safe_dump(to_dict(obj), sort_keys=False))
+    tmp.replace(path)
+
+
+def _flag_type(spec: FieldSpec) -> Any:
+    if spec.type is bool:
+        return lambda s: {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}[s.lower()]
+    if spec.type in (int, float, str):
+        return spec.type
+    return None
+
+
+def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
+    """Add one ``--prefix-field`` flag per scalar field (default None = keep the config's value)."""
+    for spec in field_specs(cls):
+        conv = _flag_type(spec)
+        if conv is None:
+            continue
+        flag = "--" + (prefix + spec.name).replace("_", "-")
+        parser.add_argument(
+            flag,
+            dest=(prefix + spec.name),
+            type=conv,
+            default=None,
+            help=f"{spec.help} ({spec.describe_range()})",
+        )
+
+
+def apply_overrides(obj: T, overrides: dict[str, Any], source: str = "command line") -> T:
+    """Return a validated copy of ``obj`` with the non-None ``overrides`` applied."""
+    data = to_dict(obj)
+    names = {s.name for s in field_specs(obj)}
+    for k, v in overrides.items():
+        if v is None:
+            continue
+        if k not in names:
+            raise ConfigError(f"{source}: unknown key {k!r}")
+        data[k] = v
+    return from_dict(type(obj), data, source=source)

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Create (or reuse) .venv with everything der_ros needs, pinned by constraints.txt.
+# Idempotent: a second run only checks a stamp and returns.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+VENV=.venv
+stamp_src=$(cat requirements.txt requirements-dev.txt constraints.txt setup.py package.xml | sha256sum | cut -d' ' -f1)
+if [ -x "$VENV/bin/python" ] && [ "$(cat "$VENV/.der_stamp" 2>/dev/null)" = "$stamp_src" ]; then
+  exit 0
+fi
+echo "[setup] creating/updating $VENV (first run takes a few minutes)" >&2
+[ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
+"$VENV/bin/python" -m pip install --quiet --upgrade pip
+"$VENV/bin/python" -m pip install --quiet -c constraints.txt -r requirements.txt -r requirements-dev.txt
+"$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e .
+"$VENV/bin/python" -c "import rclpy, libsumo, torch, der_ros" >/dev/null
+echo "$stamp_src" > "$VENV/.der_stamp"
+echo "[setup] done" >&2
