@@ -2,3 +2,12 @@
 
 Everything but ``bridge_node`` is ROS-free.
 """
+
+import gymnasium as _gym
+
+#: gymnasium ids registered on import (paper section 5.1: ring network and Yeongdong Bridge).
+ENV_IDS: tuple[str, ...] = ("der_ros/LaneChangeRing-v0", "der_ros/LaneChangeUrban-v0")
+
+for _env_id, _entry in zip(ENV_IDS, ("make_ring_env", "make_urban_env")):
+    if _env_id not in _gym.registry:
+        _gym.register(id=_env_id, entry_point=f"sumo_bridge.lane_change_env:{_entry}", disable_env_checker=False)

@@ -1,0 +1,166 @@
+"""Benchmark: the ROS 2 lockstep graph against the same training loop in one process.
+
+Runs, on the ring scenario with the agent/replay settings of ``config/graph.params.yaml``:
+
+1. ``inprocess``: ``LaneChangeEnv`` + ``DQNAgent`` in one Python process (act, step, observe,
+   learn), no ROS: the peer.
+2. ``graph``: ``bridge_node`` and ``agent_node`` as two processes in lockstep over Fast DDS
+   (localhost only, a private ``ROS_DOMAIN_ID``); the bridge runs ``max_steps`` steps, logs its
+   summary (steps/s, round-trip percentiles measured in the bridge: state published -> the
+   command answering it received) and exits.
+3. ``graph_eval``: the same graph with the agent in evaluation mode (acting only, no learning),
+   which isolates the transport + executor round trip from the gradient step.
+
+Ends with one JSON line: graph_steps_per_s, inprocess_steps_per_s, graph_ratio,
+roundtrip_p50_ms, roundtrip_p99_ms (training graph), eval_roundtrip_p50_ms/p99_ms, and the
+eval graph's steps/s. Targets: graph >= 60% of in-process, round-trip p50 <= 1 ms.
+
+    .venv/bin/python bench/graph.py [--steps 3000] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS_FILE = REPO / "config" / "graph.params.yaml"
+
+
+def _agent_config(overrides: dict) -> tuple:
+    """DQNConfig, ReplayConfig and seed of the agent node section of the params file (+ overrides)."""
+    import yaml
+
+    from der_ros.agent.config import DQNConfig
+    from der_ros.configuration import from_dict
+    from der_ros.nodes.params import unflatten
+    from der_ros.replay.config import ReplayConfig
+
+    values = dict(yaml.safe_load(PARAMS_FILE.read_text())["agent_node"]["ros__parameters"])
+    values.update(overrides)
+    agent = from_dict(DQNConfig, unflatten("agent", {k: v for k, v in values.items() if k.startswith("agent.")}))
+    replay = from_dict(ReplayConfig, unflatten("replay", {k: v for k, v in values.items() if k.startswith("replay.")}))
+    return agent, replay, int(values.get("seed", 0))
+
+
+def run_inprocess(steps: int, overrides: dict) -> float:
+    """Steps/s of the plain training loop (act -> env.step -> observe -> learn)."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    from der_ros.agent.dqn import DQNAgent
+    from sumo_bridge.lane_change_env import LaneChangeEnv
+    from sumo_bridge.scenario import ScenarioConfig
+
+    dqn_cfg, replay_cfg, seed = _agent_config(overrides)
+    env = LaneChangeEnv(ScenarioConfig())
+    obs, _ = env.reset()
+    agent = DQNAgent(obs.shape, np.float32, int(env.action_space.n), dqn_cfg, replay_cfg, seed=seed)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        a = agent.act(obs)
+        next_obs, r, term, trunc, _ = env.step(a)
+        agent.observe(obs, a, r, next_obs, term, trunc)
+        agent.learn()
+        obs = next_obs
+        if term or trunc:
+            obs, _ = env.reset()
+    rate = steps / (time.perf_counter() - t0)
+    env.close()
+    return rate
+
+
+def _param_args(params: dict) -> list[str]:
+    out = []
+    for k, v in params.items():
+        text = json.dumps(v) if isinstance(v, (list, bool)) else str(v)
+        if isinstance(v, bool):
+            text = "true" if v else "false"
+        out += ["-p", f"{k}:={text}"]
+    return out
+
+
+def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path) -> dict:
+    """Start agent + bridge, wait for the bridge to finish, return its summary."""
+    from der_ros.graph.runner import reserve_domain_id
+
+    lease = reserve_domain_id()  # same lock files as the test harness: never a shared domain
+    env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    agent_params = {**agent_overrides, "evaluate": evaluate, "checkpoint_out": str(workdir / "agent.pt")}
+    procs = []
+    try:
+        agent_log = open(workdir / f"agent{'_eval' if evaluate else ''}.log", "wb")  # noqa: SIM115
+        bridge_log_path = workdir / f"bridge{'_eval' if evaluate else ''}.log"
+        bridge_log = open(bridge_log_path, "wb")  # noqa: SIM115
+        base = [sys.executable, "-m"]
+        ros = ["--ros-args", "--params-file", str(PARAMS_FILE)]
+        procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + _param_args(agent_params),
+                                      env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
+        bridge = subprocess.Popen(
+            base + ["sumo_bridge.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
+            env=env, stdout=bridge_log, stderr=subprocess.STDOUT, start_new_session=True)
+        procs.append(bridge)
+        code = bridge.wait(timeout=60 + steps / 20)
+        text = bridge_log_path.read_text()
+        if code != 0:
+            raise RuntimeError(f"bridge exited {code}:\n{text[-3000:]}")
+        match = re.search(r"bridge summary: (\{.*\})", text)
+        if match is None:
+            raise RuntimeError(f"no bridge summary:\n{text[-3000:]}")
+        return json.loads(match.group(1))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
+        lease.release()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3000, help="environment steps per run")
+    parser.add_argument("--quick", action="store_true", help="600 steps, small learning_starts (smoke run)")
+    args = parser.parse_args()
+    steps = 600 if args.quick else args.steps
+    overrides = {"agent.learning_starts": 100} if args.quick else {}
+    workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
+    inproc = run_inprocess(steps, overrides)
+    print(f"in-process: {inproc:.1f} steps/s", file=sys.stderr)
+    graph = run_graph(steps, overrides, evaluate=False, workdir=workdir)
+    print(f"graph (training): {json.dumps(graph)}", file=sys.stderr)
+    graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
+    print(f"graph (evaluation mode): {json.dumps(graph_eval)}", file=sys.stderr)
+    result = {
+        "bench": "graph",
+        "steps": steps,
+        "graph_steps_per_s": round(graph["steps_per_s"], 1),
+        "inprocess_steps_per_s": round(inproc, 1),
+        "graph_ratio": round(graph["steps_per_s"] / inproc, 3),
+        "roundtrip_p50_ms": round(graph["roundtrip_p50_ms"], 3),
+        "roundtrip_p99_ms": round(graph["roundtrip_p99_ms"], 3),
+        "timeouts": graph["commands/timeouts"],
+        "eval_graph_steps_per_s": round(graph_eval["steps_per_s"], 1),
+        "eval_roundtrip_p50_ms": round(graph_eval["roundtrip_p50_ms"], 3),
+        "eval_roundtrip_p99_ms": round(graph_eval["roundtrip_p99_ms"], 3),
+        "logs": str(workdir),
+    }
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,342 @@
+"""DQNAgent: the DQN learner of paper section 2.1 with any replay kind (uniform / PER / DER).
+
+Step-wise API (docs/architecture.md, "Learner step-wise API"), so that both ``der train`` and the
+ROS agent node, which receives one message at a time, can drive it::
+
+    a = agent.act(obs)                                   # epsilon-greedy by agent.steps
+    agent.observe(obs, a, r, next_obs, terminated, truncated)
+    metrics = agent.learn()                              # {} unless a gradient step was due
+
+Learning rule (eq. 1 and eq. 2 of the paper)::
+
+    y = r + gamma * (1 - terminated) * max_a' Q_target(s', a')
+    delta = y - Q(s, a)
+    L = mean_i( w_i * delta_i^2 )          (or the Huber loss of delta)
+
+Only ``terminated`` cuts the bootstrap: a time limit (``truncated``) is not a property of the
+state, so the value of s' is still bootstrapped there. ``w_i`` are the replay's importance weights
+(1 for uniform and DER, PER's IS weights), and every batch's TD errors go back to the replay via
+``update_priorities`` (for DER that call promotes H1 transitions to H2 and applies eq. 3).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from der_ros.agent.config import DQNConfig
+from der_ros.agent.networks import flatten_parameters, make_q_network
+from der_ros.agent.optim import FlatAdam
+from der_ros.agent.schedules import LinearSchedule
+from der_ros.configuration import from_dict, to_dict
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.factory import make_replay
+
+__all__ = ["DQNAgent", "resolve_device", "read_checkpoint", "CHECKPOINT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 1
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """'auto' -> cuda when available, else cpu; 'cpu' / 'cuda' / 'cuda:1' as given."""
+    if isinstance(device, torch.device):
+        return device
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device = {device!r}, but CUDA is not available on this machine (use 'cpu' or 'auto')")
+    return torch.device(device)
+
+
+class DQNAgent:
+    """DQN with a target network, epsilon-greedy exploration and a pluggable replay buffer.
+
+    Randomness: one numpy Generator for exploration, the replay's own generator for sampling, and
+    torch's generator only for the initial weights (drawn inside ``fork_rng`` so that building an
+    agent does not disturb the caller's torch RNG). All of it is in :meth:`state_dict`, so a run
+    resumed from a checkpoint continues bit-for-bit like the uninterrupted run (on CPU).
+    """
+
+    def __init__(
+        self,
+        obs_shape: tuple[int, ...],
+        obs_dtype: np.dtype | type | str,
+        n_actions: int,
+        dqn_cfg: DQNConfig,
+        replay_cfg: ReplayConfig,
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.obs_shape = tuple(int(s) for s in obs_shape)
+        self.obs_dtype = np.dtype(obs_dtype)
+        self.n_actions = int(n_actions)
+        self.cfg = dqn_cfg
+        self.replay_cfg = replay_cfg
+        self.seed = int(seed)
+        self.device = resolve_device(device)
+
+        seeds = np.random.SeedSequence(self.seed).spawn(3)
+        self.rng = np.random.default_rng(seeds[0])
+        replay_seed = int(seeds[1].generate_state(1, dtype=np.uint32)[0])
+        torch_seed = int(seeds[2].generate_state(1, dtype=np.uint32)[0])
+
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(torch_seed)
+            self.q_net = make_q_network(
+                self.obs_shape, self.obs_dtype, self.n_actions, dqn_cfg.network, dqn_cfg.hidden_sizes
+            ).to(self.device)
+        self.target_net = copy.deepcopy(self.q_net)
+        self.target_net.requires_grad_(False)
+        # One contiguous buffer per network (parameters are views of it): Adam, clipping and the
+        # target update are then single-tensor operations -- the hot path of a small-net DQN.
+        self._flat, self._flat_grad = flatten_parameters(self.q_net)
+        self._target_flat, _ = flatten_parameters(self.target_net, with_grad=False)
+        self.optimizer = FlatAdam(self._flat, self._flat_grad, lr=dqn_cfg.lr)
+        self.replay = make_replay(replay_cfg, self.obs_shape, self.obs_dtype, dqn_cfg.batch_size, replay_seed)
+        self.epsilon_schedule = LinearSchedule(dqn_cfg.epsilon_start, dqn_cfg.epsilon_end, dqn_cfg.epsilon_decay_steps)
+
+        #: environment steps observed (drives epsilon, learning_starts and train_freq)
+        self.steps = 0
+        #: gradient steps taken (drives the target-network update)
+        self.grad_steps = 0
+        self._last_learn_step = -1
+
+    # ------------------------------------------------------------------ acting
+    @property
+    def epsilon(self) -> float:
+        """Exploration rate at the current step (linear decay, see :mod:`der_ros.agent.schedules`)."""
+        return self.epsilon_schedule.value(self.steps)
+
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        """Q(s, .) of one observation (no gradient), as float32 numpy."""
+        with torch.inference_mode():
+            x = torch.from_numpy(np.asarray(obs, dtype=self.obs_dtype)).unsqueeze(0).to(self.device)
+            return self.q_net(x)[0].cpu().numpy()
+
+    def act(self, obs: np.ndarray, explore: bool = True) -> int:
+        """Epsilon-greedy action: uniform random with probability epsilon, else argmax_a Q(obs, a)."""
+        eps = self.epsilon if explore else self.cfg.eval_epsilon
+        if eps > 0.0 and self.rng.random() < eps:
+            return int(self.rng.integers(self.n_actions))
+        with torch.inference_mode():
+            x = torch.from_numpy(np.asarray(obs, dtype=self.obs_dtype)).unsqueeze(0).to(self.device)
+            return int(self.q_net(x).argmax(1).item())
+
+    def observe(
+        self,
+        obs: np.ndarray,
+        action: int,
+        reward: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        truncated: bool,
+    ) -> None:
+        """Store one transition (s, a, r, s', terminated, truncated) and count one environment step."""
+        self.replay.add(obs, action, reward, next_obs, terminated, truncated)
+        self.steps += 1
+
+    # ---------------------------------------------------------------- learning
+    def learning_due(self) -> bool:
+        """True when gradient steps are due at the current environment step.
+
+        Due when more than ``learning_starts`` steps were observed, the step count is a multiple
+        of ``train_freq``, the replay can fill a batch, and this step has not been trained yet
+        (so calling :meth:`learn` twice per environment step does not double the updates).
+        """
+        c = self.cfg
+        return (
+            self.steps > c.learning_starts
+            and self.steps % c.train_freq == 0
+            and self._last_learn_step != self.steps
+            and len(self.replay) >= c.batch_size
+        )
+
+    def learn(self) -> dict[str, float]:
+        """Run ``gradient_steps`` updates when due; return metrics (empty dict when nothing was due).
+
+        Metric names are stable: ``losses/td_loss``, ``losses/q_values`` (mean Q(s, a) of the
+        batch), ``losses/abs_td_error`` (mean |delta|, the trace of Fig. 2a), ``charts/epsilon``,
+        ``charts/gradient_steps``, plus everything of ``replay.stats()``.
+        """
+        if not self.learning_due():
+            return {}
+        self._last_learn_step = self.steps
+        n = self.cfg.gradient_steps
+        loss_sum = q_sum = abs_td_sum = 0.0
+        for _ in range(n):
+            loss, q_mean, abs_td = self._gradient_step()
+            loss_sum += loss
+            q_sum += q_mean
+            abs_td_sum += abs_td
+        metrics = {
+            "losses/td_loss": loss_sum / n,
+            "losses/q_values": q_sum / n,
+            "losses/abs_td_error": abs_td_sum / n,
+            "charts/epsilon": self.epsilon,
+            "charts/gradient_steps": float(self.grad_steps),
+        }
+        metrics.update(self.replay.stats())
+        return metrics
+
+    def _tensor(self, array: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(array)).to(self.device, non_blocking=True)
+
+    def td_targets(self, rewards: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
+        """y = r + gamma * (1 - terminated) * V_target(s') (eq. 1); truncation never cuts the bootstrap."""
+        with torch.no_grad():
+            next_q = self.target_net(next_obs)
+            if self.cfg.double_dqn:
+                best = self.q_net(next_obs).argmax(1, keepdim=True)
+                next_v = next_q.gather(1, best).squeeze(1)
+            else:
+                next_v = next_q.max(1).values
+            not_done = 1.0 - terminated.float()
+            return rewards + self.cfg.gamma * not_done * next_v
+
+    def _gradient_step(self) -> tuple[float, float, float]:
+        batch = self.replay.sample(self.cfg.batch_size)
+        obs = self._tensor(batch.obs)
+        next_obs = self._tensor(batch.next_obs)
+        actions = self._tensor(batch.actions.astype(np.int64, copy=False))
+        rewards = self._tensor(batch.rewards.astype(np.float32, copy=False))
+        terminated = self._tensor(batch.terminated)
+        weights = self._tensor(batch.weights.astype(np.float32, copy=False))
+
+        y = self.td_targets(rewards, next_obs, terminated)
+        q = self.q_net(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
+        td = y - q  # delta of eq. 2
+        if self.cfg.loss == "mse":
+            per_sample = td.square()
+        else:
+            per_sample = F.smooth_l1_loss(q, y, reduction="none")
+        loss = (weights * per_sample).mean()
+
+        self._flat_grad.zero_()
+        loss.backward()
+        if self.cfg.max_grad_norm > 0.0:
+            # global norm over all parameters = norm of the one flat gradient buffer
+            norm = torch.linalg.vector_norm(self._flat_grad)
+            self._flat_grad.mul_(torch.clamp(self.cfg.max_grad_norm / (norm + 1e-6), max=1.0))
+        self.optimizer.step()
+        self.grad_steps += 1
+        if self.grad_steps % self.cfg.target_update_interval == 0:
+            self.update_target()
+
+        td_np = td.detach().cpu().numpy().astype(np.float32, copy=False)
+        self.replay.update_priorities(batch.indices, td_np)
+        q_np = q.detach().cpu().numpy()
+        return float(loss.item()), float(q_np.mean()), float(np.abs(td_np).mean())
+
+    @torch.no_grad()
+    def update_target(self) -> None:
+        """Hard copy (tau = 1) or Polyak step target <- tau * online + (1 - tau) * target."""
+        if self.cfg.tau >= 1.0:
+            self._target_flat.copy_(self._flat)
+        else:
+            self._target_flat.lerp_(self._flat, self.cfg.tau)
+
+    # ------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue training exactly: nets, optimizer, replay, RNGs, counters.
+
+        Tensors and arrays are the live objects (not copies): serialise (``save``) or deep-copy the
+        result before training on.
+        """
+        return {
+            "version": CHECKPOINT_VERSION,
+            "obs_shape": list(self.obs_shape),
+            "obs_dtype": self.obs_dtype.str,
+            "n_actions": self.n_actions,
+            "seed": self.seed,
+            "dqn_cfg": to_dict(self.cfg),
+            "replay_cfg": to_dict(self.replay_cfg),
+            "q_net": self.q_net.state_dict(),
+            "target_net": self.target_net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "replay": self.replay.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "steps": self.steps,
+            "grad_steps": self.grad_steps,
+            "last_learn_step": self._last_learn_step,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore from :meth:`state_dict` (shapes and configs must match this agent)."""
+        version = state.get("version")
+        if version != CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version = {version!r}, expected {CHECKPOINT_VERSION}")
+        if tuple(state["obs_shape"]) != self.obs_shape or int(state["n_actions"]) != self.n_actions:
+            raise ValueError(
+                f"checkpoint is for obs_shape {tuple(state['obs_shape'])}, n_actions {state['n_actions']}; "
+                f"this agent has {self.obs_shape}, {self.n_actions}"
+            )
+        self.q_net.load_state_dict(state["q_net"])
+        self.target_net.load_state_dict(state["target_net"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.replay.load_state_dict(state["replay"])
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        self.steps = int(state["steps"])
+        self.grad_steps = int(state["grad_steps"])
+        self._last_learn_step = int(state["last_learn_step"])
+
+    def save(self, path: str | os.PathLike[str], extra: dict[str, Any] | None = None) -> Path:
+        """Write a checkpoint atomically (temp file in the same folder, then ``os.replace``).
+
+        ``extra`` (e.g. the training runner's counters and environment state) is stored beside the
+        agent under the key ``"extra"``; read it back with :func:`read_checkpoint`.
+        """
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        payload = {"agent": self.state_dict(), "extra": extra or {}}
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        try:
+            with open(tmp, "wb") as fh:
+                torch.save(payload, fh, pickle_protocol=4)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        return path
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any], device: str | torch.device = "cpu") -> DQNAgent:
+        """Build an agent from the configs stored in ``state`` and load it."""
+        dqn_cfg = from_dict(DQNConfig, state["dqn_cfg"], source="checkpoint [dqn_cfg]")
+        replay_cfg = from_dict(ReplayConfig, state["replay_cfg"], source="checkpoint [replay_cfg]")
+        agent = cls(
+            tuple(state["obs_shape"]),
+            np.dtype(state["obs_dtype"]),
+            int(state["n_actions"]),
+            dqn_cfg,
+            replay_cfg,
+            seed=int(state["seed"]),
+            device=device,
+        )
+        agent.load_state_dict(state)
+        return agent
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], device: str | torch.device = "cpu") -> DQNAgent:
+        """Load an agent written by :meth:`save` (also a ``der train`` checkpoint)."""
+        return cls.from_state_dict(read_checkpoint(path, device)["agent"], device=device)
+
+
+def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> dict[str, Any]:
+    """The raw checkpoint mapping ``{"agent": ..., "extra": ...}`` (our own files: full unpickling)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    return torch.load(path, map_location=resolve_device(device), weights_only=False)

@@ -1,0 +1,178 @@
+"""``der replay play``: publish a bag's messages back into a ROS 2 graph, like ``ros2 bag play``.
+
+* Raw CDR bytes are published as recorded (rclpy's ``Publisher.publish`` accepts ``bytes``
+  and hands them to ``publish_raw``), so nothing is deserialised on the way.
+* Each topic is offered the QoS it was recorded with (``offered_qos_profiles``): reliable
+  only if every recorded publisher was reliable, transient-local only if every one was, the
+  largest KEEP_LAST depth. Topics without recorded QoS get RELIABLE / VOLATILE / depth 10.
+* Timing: message i goes out at ``t0 + (log_time_i - log_time_0) / rate`` (wall clock,
+  ``time.perf_counter``), so inter-message gaps are the recorded ones scaled by ``--rate``.
+* ``/clock`` is republished like any topic when recorded; ``--clock`` synthesises it from the
+  log times when the bag has none.
+
+Only this module needs rclpy; it is imported when ``play`` runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from der_ros.bag.reader import BagReader, Connection, Message
+from der_ros.bag.topics import topic_by_name
+
+__all__ = ["add_play_arguments", "run_play", "play_bag", "merged_qos"]
+
+log = logging.getLogger(__name__)
+
+
+def add_play_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
+    p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
+    p.add_argument("--topics", nargs="+", default=None, help="publish only these topics")
+    p.add_argument("--clock", action="store_true", help="publish /clock from the log times if the bag has no /clock")
+    p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="SECONDS",
+                   help="before playing, wait up to this long until every topic has a subscriber")
+    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing")
+
+
+def merged_qos(profiles: tuple[dict[str, Any], ...], default_depth: int = 10) -> dict[str, Any]:
+    """One QoS to offer for a topic recorded with these publisher profiles (rosbag2 dicts).
+
+    Graph introspection does not tell a publisher's history, so recorders write ``history:
+    unknown, depth: 0``; the depth then falls back to ``default_depth`` (the topic table's).
+    """
+    if not profiles:
+        return {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": default_depth}
+    rel = "reliable" if all(p.get("reliability") == "reliable" for p in profiles) else "best_effort"
+    dur = "transient_local" if all(p.get("durability") == "transient_local" for p in profiles) else "volatile"
+    depth = max(int(p.get("depth") or 0) for p in profiles) or default_depth
+    return {"reliability": rel, "durability": dur, "history": "keep_last", "depth": depth}
+
+
+def _message_class(msgtype: str) -> Any:
+    pkg, sub, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{sub}"), name)
+
+
+def _qos_profile(q: dict[str, Any]) -> Any:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(q["depth"]),
+        reliability=ReliabilityPolicy.RELIABLE if q["reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if q["durability"] == "transient_local"
+                    else DurabilityPolicy.VOLATILE),
+    )
+
+
+def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = False,
+             topics: list[str] | None = None, clock: bool = False, wait_subscribers: float = 0.0,
+             delay: float = 0.0, max_loops: int | None = None) -> int:
+    """Publish the bag through ``node``'s publishers; returns the number of messages published.
+
+    With ``loop`` the bag starts again at its end (``max_loops`` passes at most, None = forever).
+    """
+    if not rate > 0:
+        raise ValueError(f"rate = {rate!r}, expected > 0")
+    conns: dict[str, list[Connection]] = {}
+    for c in reader.connections():
+        if topics is None or c.topic in topics:
+            conns.setdefault(c.topic, []).append(c)
+    if topics is not None:
+        for t in set(topics) - set(conns):
+            log.warning("topic %s is not in the bag", t)
+    pubs: dict[str, Any] = {}
+    for topic, cs in conns.items():
+        try:
+            cls = _message_class(cs[0].msgtype)
+        except (ImportError, AttributeError, ValueError):
+            log.warning("skipping %s: message type %s is not installed", topic, cs[0].msgtype)
+            continue
+        profiles = tuple(p for c in cs for p in c.offered_qos)
+        spec = topic_by_name(topic)
+        q = merged_qos(profiles, spec.qos.depth if spec is not None and spec.msgtype == cs[0].msgtype else 10)
+        pubs[topic] = node.create_publisher(cls, topic, _qos_profile(q))
+        log.info("publishing %s (%s) with %s", topic, cs[0].msgtype, q)
+    clock_pub = None
+    if clock and "/clock" not in pubs:
+        from rosgraph_msgs.msg import Clock
+
+        clock_pub = node.create_publisher(Clock, "/clock", _qos_profile(
+            {"reliability": "best_effort", "durability": "volatile", "depth": 1}))
+        pubs_for_wait = [*pubs.values(), clock_pub]
+    else:
+        pubs_for_wait = list(pubs.values())
+    if wait_subscribers > 0 and pubs_for_wait:
+        deadline = time.monotonic() + wait_subscribers
+        while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs_for_wait):
+            time.sleep(0.02)
+        missing = [p.topic_name for p in pubs_for_wait if p.get_subscription_count() == 0]
+        if missing:
+            log.warning("no subscriber after %.1f s on %s; playing anyway", wait_subscribers, ", ".join(missing))
+    if delay > 0:
+        time.sleep(delay)
+    wanted = set(pubs)
+    published = 0
+    passes = 0
+    while True:
+        passes += 1
+        t0: float | None = None
+        first: int | None = None
+        for msg in reader.messages(wanted):
+            if first is None:
+                first = msg.log_time
+            due = max(0, msg.log_time - first) / 1e9 / rate
+            now = time.perf_counter()
+            if t0 is None:
+                t0 = now
+            wait = t0 + due - now
+            if wait > 0:
+                time.sleep(wait)
+            if clock_pub is not None:
+                _publish_clock(clock_pub, msg)
+            pubs[msg.topic].publish(bytes(msg.data))
+            published += 1
+        if not loop or first is None or (max_loops is not None and passes >= max_loops):
+            return published
+
+
+def _publish_clock(pub: Any, msg: Message) -> None:
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+
+    sec, nsec = divmod(msg.log_time, 1_000_000_000)
+    pub.publish(Clock(clock=Time(sec=sec, nanosec=nsec)))
+
+
+def run_play(args: argparse.Namespace) -> int:
+    try:
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+    except ImportError as exc:  # the reading tools work without ROS; play does not
+        print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}")
+        return 1
+    if not args.rate > 0:
+        print(f"der replay play: --rate {args.rate}: expected a number > 0")
+        return 2
+    reader = BagReader(args.bag)
+    rclpy.init()
+    node = rclpy.create_node("der_replay_player")
+    try:
+        n = play_bag(node, reader, rate=args.rate, loop=args.loop, topics=args.topics, clock=args.clock,
+                     wait_subscribers=args.wait_subscribers, delay=args.delay)
+        node.get_logger().info(f"published {n} messages from {args.bag}")
+        time.sleep(0.2)  # let reliable writers deliver the tail before the node goes away
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0

@@ -1,0 +1,249 @@
+"""``der replay``: inspect, plot, export, train from and play recorded MCAP bags.
+
+    der replay info BAG [--json]
+    der replay plot BAG [BAG...] [--out DIR] [--label NAME ...]
+    der replay export BAG --to transitions.npz|transitions.parquet
+    der replay train BAG [BAG...] --replay der --lam 0.9 [--steps N] [--eval-episodes K]
+    der replay play BAG [--rate R] [--loop] [--topics T ...]
+
+Everything but ``play`` is ROS-free (``rosbags`` typestore for decoding). Read errors
+(:class:`~der_ros.bag.reader.BagError`: corrupted file, missing topics) are reported as one
+line naming the file and byte offset, exit status 1; a cut bag is read up to the cut with a
+warning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from der_ros.bag.reader import BagError, BagReader, TruncatedBagWarning
+
+__all__ = ["add_arguments", "run", "bag_info"]
+
+log = logging.getLogger(__name__)
+
+INFO_SCHEMA_VERSION = 1
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="replay_command", metavar="ACTION", required=True)
+
+    p = sub.add_parser("info", help="topics, counts, duration and the per-episode table of a bag")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--json", action="store_true", help="print one JSON document instead of tables")
+    p.add_argument("--namespace", default=None, help="graph namespace when a bag holds several (e.g. /run1)")
+
+    p = sub.add_parser("plot", help="PNG figures: returns, outcome rates, speeds, DER replay statistics")
+    p.add_argument("bags", type=Path, nargs="+", help="one or more bags (overlaid for comparison)")
+    p.add_argument("--out", type=Path, default=Path("plots"), help="output directory (default: ./plots)")
+    p.add_argument("--label", action="append", default=None, help="legend label per bag (default: bag name)")
+    p.add_argument("--window", type=int, default=10, help="moving-average window in episodes")
+    p.add_argument("--namespace", default=None, help="graph namespace when a bag holds several")
+
+    p = sub.add_parser("export", help="transitions (s, a, r, s', terminated, truncated) as .npz or .parquet")
+    p.add_argument("bag", type=Path)
+    p.add_argument("--to", type=Path, required=True, help="output file, .npz or .parquet")
+    p.add_argument("--obs-config", type=Path, default=None,
+                   help="YAML with the ObservationConfig fields (default: recorded in the bag, else defaults)")
+    p.add_argument("--namespace", default=None)
+
+    p = sub.add_parser("train", help="train a DQN offline from recorded transitions, then evaluate it in SUMO")
+    from der_ros.bag.offline_train import add_train_arguments
+
+    add_train_arguments(p)
+
+    p = sub.add_parser("play", help="publish the recorded messages into a ROS 2 graph (needs rclpy)")
+    from der_ros.bag.play import add_play_arguments
+
+    add_play_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    handlers = {"info": _run_info, "plot": _run_plot, "export": _run_export, "train": _run_train, "play": _run_play}
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", TruncatedBagWarning)
+        warnings.showwarning = _show_warning
+        try:
+            return handlers[args.replay_command](args)
+        except BagError as exc:
+            print(f"der replay {args.replay_command}: error: {exc}", file=sys.stderr)
+            return 1
+
+
+def _show_warning(message: Warning | str, category: type[Warning], *_a: Any, **_k: Any) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
+# -- info -----------------------------------------------------------------------------------------
+
+
+def _qos_text(profiles: tuple[dict[str, Any], ...]) -> str:
+    if not profiles:
+        return "-"
+    p = profiles[0]
+    parts = [str(p.get("reliability", "?")).upper()]
+    hist = str(p.get("history", "unknown")).lower()
+    if hist == "keep_last" and p.get("depth"):
+        parts.append(f"KEEP_LAST {p['depth']}")
+    elif hist == "keep_all":
+        parts.append("KEEP_ALL")
+    durability = str(p.get("durability", "volatile")).upper()
+    if durability != "VOLATILE" or len(parts) == 1:
+        parts.append(durability)
+    if len(profiles) > 1:
+        parts.append(f"({len(profiles)} publishers)")
+    return ", ".join(parts)
+
+
+def _finite(x: float) -> float | None:
+    return x if isinstance(x, (int, float)) and math.isfinite(x) else None
+
+
+def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
+    """The ``der replay info --json`` document (schema version :data:`INFO_SCHEMA_VERSION`)."""
+    from der_ros.bag.episodes import scan_bag
+
+    reader = BagReader(path)
+    scan = scan_bag(reader, namespace)
+    conns = reader.topics()
+    meta_counts: dict[str, int] = {}
+    for entry in (reader.metadata or {}).get("topics_with_message_count") or []:
+        meta_counts[str((entry.get("topic_metadata") or {}).get("name"))] = int(entry.get("message_count", 0))
+    stale = bool(reader.metadata) and any(meta_counts.get(t, 0) != n for t, n in scan.counts.items())
+    topics = []
+    for topic in sorted(conns):
+        c = conns[topic]
+        topics.append({
+            "name": topic,
+            "type": c.msgtype,
+            "count": scan.counts.get(topic, 0),
+            "qos": list(c.offered_qos),
+            "qos_text": _qos_text(c.offered_qos),
+            "role": next((r for r, t in scan.roles.items() if t == topic), None),
+        })
+    eps = [e.as_dict() for e in scan.episodes]
+    for e in eps:
+        e["mean_speed"] = _finite(e["mean_speed"])
+    n_eps = len(eps)
+    outcomes = {o: sum(1 for e in eps if e["outcome"] == o) for o in
+                ("success", "collision", "time_limit", "terminated", "incomplete")}
+    finished = [e for e in eps if e["outcome"] != "incomplete"]
+    return {
+        "schema_version": INFO_SCHEMA_VERSION,
+        "bag": str(path),
+        "name": scan.name,
+        "files": [str(f) for f in reader.files],
+        "truncated": scan.truncated,
+        "metadata_yaml": reader.metadata is not None,
+        "metadata_stale": stale,
+        "message_count": sum(scan.counts.values()),
+        "start_ns": scan.first_ns,
+        "end_ns": scan.last_ns,
+        "duration_s": scan.duration_s,
+        "topics": topics,
+        "roles": scan.roles,
+        "steps": scan.steps,
+        "episodes": eps,
+        "summary": {
+            "episodes": n_eps,
+            "finished_episodes": len(finished),
+            "outcomes": outcomes,
+            "success_rate": outcomes["success"] / len(finished) if finished else None,
+            "collision_rate": outcomes["collision"] / len(finished) if finished else None,
+            "mean_return": sum(e["return"] for e in finished) / len(finished) if finished else None,
+        },
+        "metrics": sorted(scan.metrics),
+    }
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    info = bag_info(args.bag, args.namespace)
+    if args.json:
+        print(json.dumps(info, indent=1, default=str))
+        return 0
+    print(f"bag:       {info['bag']}{'  (TRUNCATED: read up to the cut)' if info['truncated'] else ''}")
+    print(f"files:     {', '.join(Path(f).name for f in info['files'])}")
+    if not info["metadata_yaml"]:
+        print("metadata:  no metadata.yaml (read from the MCAP file)")
+    elif info["metadata_stale"]:
+        print("metadata:  metadata.yaml counts differ from the file (stale); showing the counts read")
+    print(f"messages:  {info['message_count']}")
+    print(f"duration:  {info['duration_s']:.3f} s")
+    rows = [(t["name"], t["type"], str(t["count"]), t["qos_text"]) for t in info["topics"]]
+    _table(("topic", "type", "count", "QoS"), rows)
+    if info["episodes"]:
+        print()
+        rows = [
+            (str(e["index"]), "-" if e["episode"] is None else str(e["episode"]), str(e["steps"]), f"{e['return']:.3f}",
+             str(e["lane_changes"]), e["outcome"], "-" if e["mean_speed"] is None else f"{e['mean_speed']:.2f}")
+            for e in info["episodes"]
+        ]
+        _table(("#", "episode", "steps", "return", "lane changes", "outcome", "mean speed (m/s)"), rows)
+        s = info["summary"]
+        if s["finished_episodes"]:
+            print(f"\n{s['finished_episodes']} finished episodes: mean return {s['mean_return']:.3f}, "
+                  f"success {s['success_rate']:.0%}, collision {s['collision_rate']:.0%}")
+    else:
+        print("\nno episodes (no state/reward/episode topics of the der_ros graph in this bag)")
+    return 0
+
+
+def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
+    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(header)]
+    print("  ".join(h.ljust(w) for h, w in zip(header, widths)))
+    print("  ".join("-" * w for w in widths))
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+
+
+# -- plot / export / train / play -----------------------------------------------------------------
+
+
+def _run_plot(args: argparse.Namespace) -> int:
+    from der_ros.bag.plots import plot_bags
+
+    if args.label and len(args.label) != len(args.bags):
+        print(f"der replay plot: {len(args.label)} --label for {len(args.bags)} bags", file=sys.stderr)
+        return 2
+    files = plot_bags(args.bags, args.out, labels=args.label, window=args.window, namespace=args.namespace)
+    for f in files:
+        print(f)
+    return 0
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    from der_ros.bag.export import build_transitions, save_transitions
+
+    if args.to.suffix not in (".npz", ".parquet"):
+        print(f"der replay export: --to {args.to}: expected a .npz or .parquet file name", file=sys.stderr)
+        return 2
+    obs_cfg = None
+    if args.obs_config is not None:
+        from der_ros.configuration import load_yaml
+        from sumo_bridge.observation import ObservationConfig
+
+        obs_cfg = load_yaml(args.obs_config, ObservationConfig)
+    tr = build_transitions(BagReader(args.bag), obs_cfg, args.namespace)
+    out = save_transitions(tr, args.to)
+    print(f"{out}: {len(tr)} transitions from {int(tr.episode.max()) + 1 if len(tr) else 0} episodes"
+          + (f" (skipped: {tr.skipped})" if tr.skipped else ""))
+    return 0
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from der_ros.bag.offline_train import run_train
+
+    return run_train(args)
+
+
+def _run_play(args: argparse.Namespace) -> int:
+    from der_ros.bag.play import run_play
+
+    return run_play(args)

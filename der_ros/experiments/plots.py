@@ -1,0 +1,129 @@
+"""Figures of the multi-seed suites (matplotlib, Agg backend, PNG).
+
+* :func:`plot_learning_curves` -- like Fig. 1/3/5: per method, the moving average of episode
+  returns against environment steps, mean over seeds with a 95% bootstrap band.
+* :func:`plot_td_traces` -- like Fig. 2: (a) mean |TD error| of the training batches and
+  (b) the mean H2 sampling weight p (DER methods), against steps, mean over seeds with a band.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from der_ros.experiments.stats import bootstrap_band, curve_on_grid  # noqa: E402
+from der_ros.experiments.suite import RunResult  # noqa: E402
+
+__all__ = ["plot_learning_curves", "plot_td_traces", "metric_on_grid"]
+
+
+def _grid(results: Mapping[str, Sequence[RunResult]], n_points: int) -> np.ndarray:
+    total = max((int(r.summary.get("steps", 0)) for runs in results.values() for r in runs), default=1)
+    return np.linspace(0, total, n_points)
+
+
+def plot_learning_curves(
+    results: Mapping[str, Sequence[RunResult]],
+    labels: Mapping[str, str],
+    path: str | Path | None,
+    window: int = 20,
+    title: str = "",
+    n_points: int = 200,
+    ax: plt.Axes | None = None,
+) -> Path | None:
+    """Learning curves (mean of ``window``-episode moving averages over seeds, 95% CI band)."""
+    own = ax is None
+    if own:
+        fig, ax = plt.subplots(figsize=(7, 4.2))
+    grid = _grid(results, n_points)
+    for i, (name, runs) in enumerate(results.items()):
+        if not runs:
+            continue
+        color = f"C{i % 10}"
+        curves = np.stack([curve_on_grid(r.episode_steps, r.returns, grid, window) for r in runs])
+        mean, lo, hi = bootstrap_band(curves)
+        ax.plot(grid, mean, label=f"{labels.get(name, name)} (n={len(runs)})", color=color)
+        ax.fill_between(grid, lo, hi, color=color, alpha=0.2, linewidth=0)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(f"return (moving average of {window} episodes)")
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if own:
+        if path is None:
+            raise ValueError("plot_learning_curves needs a path when it makes its own figure")
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        return path
+    return None
+
+
+def metric_on_grid(run: RunResult, name: str, grid: np.ndarray) -> np.ndarray:
+    """A logged metric of one run, linearly interpolated on ``grid`` (NaN outside its range)."""
+    if name not in run.metrics:
+        return np.full(len(grid), np.nan)
+    steps, values = run.metrics[name]
+    if steps.size == 0:
+        return np.full(len(grid), np.nan)
+    out = np.interp(grid, steps.astype(np.float64), values)
+    out[(grid < steps[0]) | (grid > steps[-1])] = np.nan
+    return out
+
+
+def plot_td_traces(
+    results: Mapping[str, Sequence[RunResult]],
+    labels: Mapping[str, str],
+    path: str | Path,
+    title: str = "",
+    n_points: int = 200,
+) -> Path:
+    """Fig. 2 style: (a) mean |TD error| per method, (b) mean H2 weight p of the DER methods."""
+    fig, (ax_td, ax_w) = plt.subplots(1, 2, figsize=(11, 4.2))
+    grid = _grid(results, n_points)
+    any_weight = False
+    for i, (name, runs) in enumerate(results.items()):
+        if not runs:
+            continue
+        label, color = labels.get(name, name), f"C{i % 10}"
+        for ax, metric in ((ax_td, "losses/abs_td_error"), (ax_w, "replay/h2_weight_mean")):
+            values = np.stack([metric_on_grid(r, metric, grid) for r in runs])
+            if metric == "replay/h2_weight_mean":  # undefined (logged as 0) while H2 is empty
+                h2 = np.stack([metric_on_grid(r, "replay/h2_size", grid) for r in runs])
+                values[~(h2 > 0)] = np.nan
+            if not np.isfinite(values).any():
+                continue
+            any_weight |= ax is ax_w
+            mean, lo, hi = bootstrap_band(values)
+            ax.plot(grid, mean, label=label, color=color)
+            ax.fill_between(grid, lo, hi, color=color, alpha=0.2, linewidth=0)
+    ax_td.set_title("(a) mean |TD error| of training batches")
+    ax_td.set_xlabel("environment steps")
+    ax_td.set_ylabel("|δ|")
+    ax_td.grid(alpha=0.3)
+    ax_td.legend(fontsize=8)
+    ax_w.set_title("(b) mean H2 sampling weight p (eq. 3)")
+    ax_w.set_xlabel("environment steps")
+    ax_w.set_ylabel("p")
+    ax_w.grid(alpha=0.3)
+    if any_weight:
+        ax_w.legend(fontsize=8)
+    else:
+        ax_w.text(0.5, 0.5, "no DER runs", ha="center", va="center", transform=ax_w.transAxes)
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

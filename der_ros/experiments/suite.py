@@ -1,0 +1,369 @@
+"""Generic multi-seed experiment suite: methods x seeds -> training runs in parallel processes.
+
+Environment-agnostic: Table 1 (CartPole), Table 2 (Atari) and Table 3 (SUMO) all use it. A run
+is one ``der train``-equivalent call (config file + dotted overrides) in a worker process, writing
+its own run directory ``<out>/<method>/seed<k>/`` (``<out>/<group>/<method>/seed<k>/`` with
+groups, e.g. one per Atari game). The suite is resumable:
+
+* a run whose ``summary.json`` says it finished ``total_steps`` is skipped;
+* a run with a ``checkpoint.pt`` but no finished summary (killed, Ctrl-C) resumes from it;
+* anything else starts fresh.
+
+Ctrl-C: every worker gets the SIGINT too, finishes its current step, writes a checkpoint and
+stops; queued runs are cancelled. Rerunning the same command continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shlex
+from collections.abc import Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "Method",
+    "PAPER_METHODS",
+    "methods_by_name",
+    "RunSpec",
+    "RunResult",
+    "plan_runs",
+    "run_one",
+    "run_specs",
+    "run_suite",
+    "load_result",
+    "default_jobs",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Method:
+    """One column of the paper's tables: a name for paths, a label for tables, config overrides."""
+
+    name: str
+    label: str
+    overrides: tuple[tuple[str, Any], ...]
+
+
+#: The five methods of Tables 1-3, in the paper's row order. Only the replay differs (section 4.1).
+PAPER_METHODS: tuple[Method, ...] = (
+    Method("dqn", "DQN", (("replay.kind", "uniform"),)),
+    Method("der0.1", "λ = 0.1", (("replay.kind", "der"), ("replay.lam", 0.1))),
+    Method("der0.5", "λ = 0.5", (("replay.kind", "der"), ("replay.lam", 0.5))),
+    Method("der0.9", "λ = 0.9", (("replay.kind", "der"), ("replay.lam", 0.9))),
+    Method("per", "PER", (("replay.kind", "per"),)),
+)
+
+
+def methods_by_name(names: Iterable[str] | None) -> list[Method]:
+    """Pick methods of :data:`PAPER_METHODS` by name (``None`` = all, in paper order)."""
+    if names is None:
+        return list(PAPER_METHODS)
+    known = {m.name: m for m in PAPER_METHODS}
+    out = []
+    for n in names:
+        if n not in known:
+            raise ValueError(f"method {n!r} unknown; expected one of {', '.join(known)}")
+        out.append(known[n])
+    return out
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of a suite; picklable so a worker process can execute it."""
+
+    method: Method
+    seed: int
+    config_path: str
+    run_dir: str
+    overrides: tuple[tuple[str, Any], ...] = ()
+    group: str = ""
+
+    def all_overrides(self) -> dict[str, Any]:
+        """File < method < suite overrides; seed and run_dir are always set; no progress bar."""
+        out: dict[str, Any] = dict(self.method.overrides)
+        out.update(dict(self.overrides))
+        out["train.seed"] = self.seed
+        out["train.run_dir"] = self.run_dir
+        out["train.progress"] = False
+        return out
+
+    def command(self) -> str:
+        """The equivalent ``der train`` command line (written to the run directory)."""
+        parts = ["der", "train", "--config", self.config_path]
+        for k, v in self.all_overrides().items():
+            parts += ["--set", f"{k}={json.dumps(v) if not isinstance(v, str) else v}"]
+        return shlex.join(parts)
+
+
+@dataclass
+class RunResult:
+    """A finished run read back from its directory."""
+
+    spec: RunSpec
+    summary: dict[str, Any]
+    episode_steps: np.ndarray
+    returns: np.ndarray
+    metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+
+def _finished(run_dir: Path, total_steps: int) -> bool:
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return False
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return not s.get("interrupted", True) and int(s.get("steps", 0)) >= total_steps
+
+
+def _resolve(spec: RunSpec) -> Any:
+    from der_ros.train.config import load_experiment_config
+
+    return load_experiment_config(spec.config_path, spec.all_overrides())
+
+
+def run_one(spec: RunSpec) -> dict[str, Any]:
+    """Execute (or skip, or resume) one run; returns its summary as a dict. Top level: picklable."""
+    import torch
+
+    from der_ros.train.runner import CHECKPOINT_NAME, train
+
+    torch.set_num_threads(1)
+    cfg = _resolve(spec)
+    run_dir = Path(spec.run_dir)
+    if _finished(run_dir, cfg.train.total_steps):
+        return json.loads((run_dir / "summary.json").read_text()) | {"skipped": True}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "command.txt").write_text(spec.command() + "\n")
+    ckpt = run_dir / CHECKPOINT_NAME
+    resume = ckpt if ckpt.is_file() else None
+    summary = train(cfg, run_dir=run_dir, resume=resume)
+    return dict(summary.__dict__)
+
+
+def default_jobs() -> int:
+    """Worker processes: the number of CPU cores available to this process."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def plan_runs(
+    config_path: str | Path,
+    methods: Sequence[Method],
+    seeds: Sequence[int],
+    out_dir: str | Path,
+    overrides: dict[str, Any] | None = None,
+    group: str = "",
+) -> list[RunSpec]:
+    """RunSpecs for every (method, seed); ``overrides`` (dotted keys) apply to all of them."""
+    base = Path(out_dir) / group if group else Path(out_dir)
+    ov = tuple((overrides or {}).items())
+    return [
+        RunSpec(m, int(s), str(config_path), str(base / m.name / f"seed{s}"), ov, group) for m in methods for s in seeds
+    ]
+
+
+def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[str, Any]]:
+    """Run the specs (finished ones are skipped), ``jobs`` at a time in spawned worker processes.
+
+    Configs are validated in this process first, so a bad config fails before any run starts.
+    """
+    todo = []
+    for spec in specs:
+        cfg = _resolve(spec)  # raises ConfigError before any run starts
+        if _finished(Path(spec.run_dir), cfg.train.total_steps):
+            log.info("skip finished run %s", spec.run_dir)
+        else:
+            todo.append(spec)
+    jobs = max(1, min(jobs or default_jobs(), max(1, len(todo))))
+    results: list[dict[str, Any]] = []
+    if not todo:
+        return results
+    log.info("%d runs to do (%d finished), %d in parallel", len(todo), len(specs) - len(todo), jobs)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    ctx = get_context("spawn")  # fresh interpreters: no forked torch/threads state
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx)
+    pending: dict[Future[dict[str, Any]], RunSpec] = {pool.submit(run_one, s): s for s in todo}
+    done_count = 0
+    try:
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                spec = pending.pop(fut)
+                summary = fut.result()
+                done_count += 1
+                results.append(summary)
+                log.info(
+                    "[%d/%d] %s %s seed %d: %d steps, %d episodes, mean return %.2f%s",
+                    done_count,
+                    len(todo),
+                    spec.group or "",
+                    spec.method.name,
+                    spec.seed,
+                    summary.get("steps", 0),
+                    summary.get("episodes", 0),
+                    summary.get("mean_return", float("nan")),
+                    " (interrupted)" if summary.get("interrupted") else "",
+                )
+    except KeyboardInterrupt:
+        log.warning("interrupted: workers write checkpoints; rerun the same command to continue")
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return results
+
+
+def run_suite(
+    config_path: str | Path,
+    methods: Sequence[Method],
+    seeds: Sequence[int],
+    out_dir: str | Path,
+    jobs: int | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> list[RunResult]:
+    """Plan, run (skipping finished runs) and load every (method, seed) of one suite."""
+    specs = plan_runs(config_path, methods, seeds, out_dir, overrides)
+    run_specs(specs, jobs)
+    return [load_result(s) for s in specs]
+
+
+def load_result(spec: RunSpec, metric_names: Iterable[str] | None = None) -> RunResult:
+    """Read a finished run's summary, episodes and (optionally only some) metrics."""
+    from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
+
+    run_dir = Path(spec.run_dir)
+    summary_path = run_dir / "summary.json"
+    if not summary_path.is_file():
+        raise FileNotFoundError(f"run {run_dir} has no summary.json (not run or still running)")
+    summary = json.loads(summary_path.read_text())
+    ep = read_episodes_csv(run_dir / "episodes.csv")
+    metrics: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    mpath = run_dir / "metrics.csv"
+    if mpath.is_file():
+        wanted = set(metric_names) if metric_names is not None else None
+        for name, (steps, values) in read_metrics_csv(mpath).items():
+            if wanted is None or name in wanted:
+                metrics[name] = (np.asarray(steps, dtype=np.int64), np.asarray(values, dtype=np.float64))
+    return RunResult(
+        spec=spec,
+        summary=summary,
+        episode_steps=np.asarray(ep["step"], dtype=np.float64),
+        returns=np.asarray(ep["return"], dtype=np.float64),
+        metrics=metrics,
+    )
+
+
+# ----------------------------------------------------------------------------- CLI helpers
+def add_suite_arguments(
+    parser: Any, default_config: str, default_out: str, default_seeds: int = 5, default_steps: int | None = None
+) -> None:
+    """Flags shared by ``der table1/2/3``: config, seeds, steps, jobs, methods, output folders."""
+    parser.add_argument("--config", default=default_config, help=f"training YAML (default {default_config})")
+    parser.add_argument("--seeds", type=int, default=default_seeds, help=f"seeds per method (default {default_seeds})")
+    parser.add_argument("--first-seed", dest="first_seed", type=int, default=0, help="seeds are first..first+seeds-1")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=default_steps,
+        help="environment steps per run (default: " + (f"{default_steps}" if default_steps else "the config's") + ")",
+    )
+    parser.add_argument("--jobs", type=int, default=None, help="parallel runs (default: number of cores)")
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        choices=[m.name for m in PAPER_METHODS],
+        help="subset of methods (default: all five of the paper)",
+    )
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device of every run")
+    parser.add_argument("--out", default=default_out, help=f"folder of the run directories (default {default_out})")
+    parser.add_argument("--results", default="results", help="folder for the table (.md) and figures (.png)")
+    parser.add_argument(
+        "--set",
+        dest="set_values",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="config override for every run; VALUE is YAML (repeatable)",
+    )
+
+
+def suite_overrides(args: Any) -> dict[str, Any]:
+    """Dotted overrides from the shared suite flags (``--steps``, ``--device``, ``--set``)."""
+    import yaml
+
+    from der_ros.configuration import ConfigError
+
+    out: dict[str, Any] = {}
+    if args.steps is not None:
+        out["train.total_steps"] = int(args.steps)
+    if args.device is not None:
+        out["train.device"] = args.device
+    for text in args.set_values:
+        if "=" not in text:
+            raise ConfigError(f"command line: --set {text!r}, expected section.key=value")
+        key, raw = text.split("=", 1)
+        out[key.strip()] = yaml.safe_load(raw)
+    return out
+
+
+def suite_command(name: str, args: Any, extra: Sequence[str] = ()) -> str:
+    """The canonical command line that reproduces a suite (written into the results file)."""
+    parts = [
+        "der",
+        name,
+        "--config",
+        str(args.config),
+        "--seeds",
+        str(args.seeds),
+        "--first-seed",
+        str(args.first_seed),
+    ]
+    if args.steps is not None:
+        parts += ["--steps", str(args.steps)]
+    if args.jobs is not None:
+        parts += ["--jobs", str(args.jobs)]
+    if args.methods:
+        parts += ["--methods", *args.methods]
+    if args.device:
+        parts += ["--device", args.device]
+    parts += ["--out", str(args.out), "--results", str(args.results), *extra]
+    for s in args.set_values:
+        parts += ["--set", s]
+    return shlex.join(parts)
+
+
+def environment_info() -> dict[str, str]:
+    """Versions and machine facts for the results files."""
+    import platform
+    import sys
+    from datetime import datetime, timezone
+
+    import gymnasium
+    import torch
+
+    import der_ros
+
+    return {
+        "date (UTC)": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M"),
+        "der_ros": der_ros.__version__,
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "gymnasium": gymnasium.__version__,
+        "numpy": np.__version__,
+        "machine": f"{platform.machine()} {platform.system()}, {os.cpu_count()} CPUs"
+        + (f", CUDA {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ", no CUDA"),
+    }

@@ -1,0 +1,143 @@
+"""A small rclpy node inside the ``der graph`` process that watches progress (episodes, steps, metrics).
+
+It runs in its own rclpy Context and a background thread, so the supervisor loop (plain
+Python) never blocks on ROS and the monitor never holds the GIL for long: it only counts
+``lane_change_cmd`` messages (one per decision step) and parses the rare ``episode`` and
+``agent/metrics`` messages.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["GraphMonitor", "ProgressSnapshot"]
+
+
+@dataclass
+class ProgressSnapshot:
+    """What the runner shows: counts since the monitor started."""
+
+    steps: int = 0
+    episodes: int = 0  # finished episodes
+    returns: list[float] = field(default_factory=list)
+    outcomes: dict[str, int] = field(default_factory=lambda: {"success": 0, "collision": 0, "time_limit": 0})
+    lane_changes: int = 0
+    metrics: dict[str, float] = field(default_factory=dict)
+
+    def mean_return(self, window: int = 10) -> float | None:
+        tail = self.returns[-window:]
+        return sum(tail) / len(tail) if tail else None
+
+    def line(self, window: int = 10) -> str:
+        """One-line status text."""
+        avg = self.mean_return(window)
+        parts = [
+            f"episodes {self.episodes}",
+            f"return avg({window}) {avg:+.1f}" if avg is not None else "return avg -",
+            f"lane changes {self.lane_changes}",
+            f"success {self.outcomes['success']}",
+            f"collision {self.outcomes['collision']}",
+            f"time limit {self.outcomes['time_limit']}",
+        ]
+        eps = self.metrics.get("charts/epsilon")
+        if eps is not None:
+            parts.append(f"eps {eps:.2f}")
+        h2 = self.metrics.get("replay/h2_fraction")
+        if h2 is not None:
+            parts.append(f"H2 frac {h2:.2f}")
+        return " | ".join(parts)
+
+
+class GraphMonitor:
+    """Subscribes to ``lane_change_cmd``, ``episode`` and ``agent/metrics`` in ``domain_id``.
+
+    ``namespace`` is the graph's namespace (topic names are relative to it).
+    """
+
+    def __init__(self, domain_id: int, namespace: str = "") -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import Joy
+
+        from der_ros.nodes.msg_conversions import diagnostics_to_metrics, parse_episode_events
+
+        self._parse_events = parse_episode_events
+        self._to_metrics = diagnostics_to_metrics
+        self._lock = threading.Lock()
+        self._snap = ProgressSnapshot()
+        self.events: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=100_000)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=_no_signals())
+        self.node = Node("der_graph_monitor", namespace=namespace or None, context=self.context)
+        self.node.create_subscription(Joy, "lane_change_cmd", self._on_cmd, QoSProfile(depth=100))
+        self.node.create_subscription(DiagnosticArray, "episode", self._on_episode, QoSProfile(depth=100))
+        self.node.create_subscription(DiagnosticArray, "agent/metrics", self._on_metrics, QoSProfile(depth=50))
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="der-graph-monitor", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except Exception:  # context shut down under us while closing
+            pass
+
+    def _on_cmd(self, _msg: Any) -> None:
+        with self._lock:
+            self._snap.steps += 1
+
+    def _on_episode(self, msg: Any) -> None:
+        events = self._parse_events(msg)
+        with self._lock:
+            for stamp, event, values in events:
+                self.events.append((stamp, event, dict(values)))
+                if event == "start":
+                    continue
+                self._snap.episodes += 1
+                if event in self._snap.outcomes:
+                    self._snap.outcomes[event] += 1
+                ret = values.get("return")
+                if isinstance(ret, (int, float)):
+                    self._snap.returns.append(float(ret))
+                lc = values.get("lane_changes")
+                if isinstance(lc, (int, float)):
+                    self._snap.lane_changes += int(lc)
+
+    def _on_metrics(self, msg: Any) -> None:
+        metrics = self._to_metrics(msg)
+        with self._lock:
+            self._snap.metrics.update(metrics)
+
+    def snapshot(self) -> ProgressSnapshot:
+        """A copy of the counters (safe to read from the runner thread)."""
+        with self._lock:
+            s = self._snap
+            return ProgressSnapshot(s.steps, s.episodes, list(s.returns), dict(s.outcomes), s.lane_changes,
+                                    dict(s.metrics))
+
+    def close(self) -> None:
+        import rclpy
+
+        try:
+            rclpy.shutdown(context=self.context)
+        except Exception:  # already shut down
+            pass
+        self._thread.join(timeout=5)
+        self.executor.shutdown(timeout_sec=1)
+        self.node.destroy_node()
+
+
+def _no_signals() -> Any:
+    """The runner handles Ctrl-C itself: rclpy must not install its own handlers."""
+    from rclpy.signals import SignalHandlerOptions
+
+    return SignalHandlerOptions.NO

@@ -1,0 +1,317 @@
+"""``agent_node``: the DQN + Double Experience Replay learner as a ROS 2 node (rclpy adapter).
+
+Subscribes to ``state`` (PointCloud2), ``reward`` (Vector3Stamped) and ``episode``
+(DiagnosticArray) from the bridge, answers every non-terminal state with a ``lane_change_cmd``
+(sensor_msgs/Joy stamped with the state's stamp) and learns online: the stamp join, the
+transition rule and the episode accounting live in the ROS-free
+:class:`der_ros.agent.online.OnlineLearner`; this module only converts messages, owns the
+:class:`der_ros.agent.dqn.DQNAgent` and publishes.
+
+The command is published *before* the gradient step of that step runs, so in lockstep the
+bridge simulates step k+1 while the agent learns from step k.
+
+Outputs besides the command: ``agent/metrics`` (DiagnosticArray, stable metric names:
+``charts/episodic_return``, ``losses/td_loss``, ``replay/h2_size``, ``replay/h2_fraction``,
+``replay/h2_weight_mean``, ``online/...`` counters, ``episode/...`` from the bridge's events);
+checkpoints to ``checkpoint_out`` every ``checkpoint_every`` learner steps, on the
+``agent/save_checkpoint`` service (std_srvs/Trigger) and on SIGINT/SIGTERM (then exit 0).
+``agent/set_paused`` (std_srvs/SetBool) switches evaluation mode: greedy actions, no storing,
+no learning.
+
+Parameters: the node's own (:class:`AgentNodeConfig`, top-level names), ``agent.*``
+(:class:`~der_ros.agent.config.DQNConfig`), ``replay.*``
+(:class:`~der_ros.replay.config.ReplayConfig`) and ``observation.*``
+(:class:`~sumo_bridge.observation.ObservationConfig`, must equal the bridge's
+``scenario.observation.*``). ``use_sim_time`` is set in the params YAML (true there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.node import Node
+from sensor_msgs.msg import Joy, PointCloud2
+from std_srvs.srv import SetBool, Trigger
+
+from der_ros.configuration import param
+from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes.params import ConfigParameters
+from der_ros.nodes.spin import run_node
+
+__all__ = ["AgentNodeConfig", "AgentNode", "MUTABLE", "parameter_sections", "main"]
+
+_NS = 1_000_000_000
+
+
+@dataclass
+class AgentNodeConfig:
+    """Parameters of the agent node itself (top-level ROS parameter names)."""
+
+    seed: int = param(0, "seed of the learner (network init, exploration, replay sampling)", low=0)
+    device: str = param("cpu", "torch device: 'cpu', 'cuda', 'cuda:N' or 'auto'")
+    n_actions: int = param(3, "number of actions (0 keep lane, 1 left, 2 right)", low=2)
+    checkpoint_in: str = param("", "checkpoint to load at start (empty = start from scratch)")
+    checkpoint_out: str = param("", "checkpoint file written periodically and on shutdown (empty = never)")
+    checkpoint_every: int = param(5000, "save every this many environment steps (0 = only on shutdown / service)",
+                                  low=0)
+    metrics_every: int = param(100, "publish agent/metrics every this many gradient-step calls (and at every "
+                               "episode end)", low=1)
+    evaluate: bool = param(False, "start paused: evaluation mode (greedy actions, no learning)")
+    step_seconds: float = param(
+        0.0, "the bridge's step in seconds, to detect steps lost on every topic (0 = do not check)", low=0.0)
+    max_buffered: int = param(64, "incomplete state/reward stamps kept while waiting for the other half", low=1)
+    torch_threads: int = param(1, "torch intra-op threads (1 keeps the node from competing with SUMO)", low=1)
+    warm_up: bool = param(
+        True, "before joining the graph, run act/observe/learn on a scratch agent so that lazy set-up (the replay's "
+        "numba kernels, torch autograd) does not stall the first real steps past the bridge's command timeout")
+
+
+#: parameters that may change while the node runs (all others are read-only)
+MUTABLE = frozenset({"replay.lam", "agent.lr", "checkpoint_every", "metrics_every", "checkpoint_out"})
+
+
+def parameter_sections() -> dict[str, Any]:
+    """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
+    from der_ros.agent.config import DQNConfig
+    from der_ros.replay.config import ReplayConfig
+    from sumo_bridge.observation import ObservationConfig
+
+    return {"": AgentNodeConfig(), "agent": DQNConfig(), "replay": ReplayConfig(), "observation": ObservationConfig()}
+
+
+class AgentNode(Node):
+    """rclpy adapter around OnlineLearner + DQNAgent; see the module docstring."""
+
+    def __init__(self) -> None:
+        super().__init__("agent_node")
+        import torch
+
+        from der_ros.agent.dqn import DQNAgent
+        from der_ros.agent.online import OnlineLearner
+        from sumo_bridge.observation import empty_points, encode_observation
+
+        self.finished = False
+        self._params = ConfigParameters(self, parameter_sections(), mutable=MUTABLE, on_change=self._on_param_change)
+        self.cfg: AgentNodeConfig = self._params.get("")
+        torch.set_num_threads(self.cfg.torch_threads)
+        obs_cfg = self._params.get("observation")
+        self._encode = lambda pts: encode_observation(pts, obs_cfg)
+        obs_shape = self._encode(empty_points()).shape
+        if self.cfg.checkpoint_in:
+            self.agent = DQNAgent.load(self.cfg.checkpoint_in, device=self.cfg.device)
+            if self.agent.obs_shape != tuple(obs_shape) or self.agent.n_actions != self.cfg.n_actions:
+                raise ValueError(
+                    f"checkpoint_in {self.cfg.checkpoint_in}: obs_shape {self.agent.obs_shape}, n_actions "
+                    f"{self.agent.n_actions}; expected {tuple(obs_shape)}, {self.cfg.n_actions}"
+                )
+            self.get_logger().info(
+                f"loaded {self.cfg.checkpoint_in} (step {self.agent.steps}); its agent/replay configs replace the "
+                "agent.* and replay.* parameters"
+            )
+        else:
+            self.agent = DQNAgent(
+                tuple(obs_shape), np.float32, self.cfg.n_actions, self._params.get("agent"),
+                self._params.get("replay"), seed=self.cfg.seed, device=self.cfg.device,
+            )
+        if self.cfg.warm_up:
+            self._warm_up(DQNAgent, tuple(obs_shape))
+        step_ns = int(round(self.cfg.step_seconds * _NS)) or None
+        self.learner = OnlineLearner(self.agent, encode=self._encode, max_buffered=self.cfg.max_buffered,
+                                     step_ns=step_ns)
+        self.learner.set_paused(self.cfg.evaluate)
+        self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"
+        self.bad_messages: dict[str, int] = {"state": 0, "reward": 0, "episode": 0}
+        self._learn_calls = 0
+        self._last_saved_step = self.agent.steps
+        self._last_metrics: dict[str, float] = {}
+
+        from sumo_bridge.bridge_node import qos_profiles
+
+        q = qos_profiles()
+        self.pub_cmd = self.create_publisher(Joy, "lane_change_cmd", q["lane_change_cmd"])
+        self.pub_metrics = self.create_publisher(DiagnosticArray, "agent/metrics", q["agent/metrics"])
+        self.create_subscription(PointCloud2, "state", self._on_state, q["state"])
+        self.create_subscription(Vector3Stamped, "reward", self._on_reward, q["reward"])
+        self.create_subscription(DiagnosticArray, "episode", self._on_episode, q["episode"])
+        self.create_service(Trigger, "agent/save_checkpoint", self._srv_save)
+        self.create_service(SetBool, "agent/set_paused", self._srv_pause)
+        self.get_logger().info(
+            f"agent ready: obs {tuple(obs_shape)}, replay {self.agent.replay_cfg.kind}, "
+            f"{'evaluation' if self.learner.paused else 'training'} mode, sender id {self.sender_id}"
+        )
+
+    def _warm_up(self, agent_cls: Any, obs_shape: tuple[int, ...]) -> None:
+        """Exercise every lazy path of the learner once, on a throw-away agent with the same configs.
+
+        The first gradient step of a fresh process compiles (or loads from cache) the replay's
+        numba kernels and builds torch's autograd state: up to seconds on a loaded machine, during
+        which a lockstep bridge would time out and apply its default action while this agent
+        stores its own. Running them here, before any subscription exists, keeps that out of the
+        graph (the bridge waits for the agent to appear).
+        """
+        t0 = time.perf_counter()
+        batch = self.agent.cfg.batch_size
+        dqn_cfg = dataclasses.replace(self.agent.cfg, learning_starts=0)
+        replay_cfg = dataclasses.replace(self.agent.replay_cfg, capacity=max(4 * batch, 64))
+        scratch = agent_cls(obs_shape, np.float32, self.agent.n_actions, dqn_cfg, replay_cfg, seed=12345,
+                            device=self.cfg.device)
+        rng = np.random.default_rng(0)
+        obs = rng.uniform(-1, 1, size=(3 * batch + 1, *obs_shape)).astype(np.float32)
+        for i in range(3 * batch):
+            a = scratch.act(obs[i])
+            scratch.observe(obs[i], a, float(rng.normal()), obs[i + 1], bool(i % 7 == 6), False)
+            scratch.learn()
+        self.get_logger().info(f"warm-up done in {time.perf_counter() - t0:.2f}s ({scratch.grad_steps} gradient steps)")
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def _reject(self, topic: str, exc: Exception) -> None:
+        self.bad_messages[topic] += 1
+        self.get_logger().warning(f"rejected {topic} message ({self.bad_messages[topic]} so far): {exc}",
+                                  throttle_duration_sec=1.0)
+
+    def _on_state(self, msg: PointCloud2) -> None:
+        try:
+            points = mc.cloud_to_points(msg)
+            stamp = mc.time_to_ns(msg.header.stamp)
+            decisions = self.learner.on_state(stamp, points)
+        except ValueError as exc:
+            self._reject("state", exc)
+            return
+        self._handle(decisions)
+
+    def _on_reward(self, msg: Vector3Stamped) -> None:
+        try:
+            stamp, reward, terminated, truncated = mc.parse_reward(msg)
+        except ValueError as exc:
+            self._reject("reward", exc)
+            return
+        self._handle(self.learner.on_reward(stamp, reward, terminated, truncated))
+
+    def _handle(self, decisions: list[Any]) -> None:
+        if not decisions:
+            return
+        for d in decisions:  # answer first: the bridge steps while we learn
+            if d.action is not None:
+                self.pub_cmd.publish(mc.make_command(d.stamp_ns, d.action, self.sender_id))
+        for d in decisions:
+            if d.stored:
+                self._learn()
+            if d.episode is not None:
+                self._publish_metrics(d.stamp_ns, d.episode.metrics())
+        self._maybe_checkpoint()
+
+    def _learn(self) -> None:
+        metrics = self.learner.learn()
+        if metrics:
+            self._last_metrics = metrics
+            self._learn_calls += 1
+            if self._learn_calls % self.cfg.metrics_every == 0:
+                self._publish_metrics(None, {})
+
+    def _on_episode(self, msg: DiagnosticArray) -> None:
+        try:
+            events = mc.parse_episode_events(msg)
+        except ValueError as exc:
+            self._reject("episode", exc)
+            return
+        for stamp, event, values in events:
+            if event == "start":
+                continue
+            self.get_logger().info(f"episode {values.get('episode')} ended: {event} {values}")
+            metrics = {f"episode/{event}": 1.0}
+            for key in ("steps", "return", "lane_changes", "mean_speed"):
+                if isinstance(values.get(key), (int, float)):
+                    metrics[f"episode/{key}"] = float(values[key])
+            self._publish_metrics(stamp, metrics)
+
+    # -- outputs ---------------------------------------------------------------------------------
+    def _publish_metrics(self, stamp_ns: int | None, extra: dict[str, float]) -> None:
+        metrics: dict[str, float] = {}
+        metrics.update(self._last_metrics)
+        metrics.update(self.agent.replay.stats())
+        metrics.update(self.learner.stats())
+        metrics["charts/env_steps"] = float(self.agent.steps)
+        metrics["charts/epsilon"] = float(self.agent.epsilon)
+        metrics.update({f"agent/bad_{k}": float(v) for k, v in self.bad_messages.items()})
+        metrics.update(extra)
+        if stamp_ns is None:
+            stamp_ns = self.get_clock().now().nanoseconds
+        self.pub_metrics.publish(mc.metrics_to_diagnostics(metrics, max(stamp_ns, 0), hardware_id=self.sender_id))
+
+    def _maybe_checkpoint(self) -> None:
+        every = self.cfg.checkpoint_every
+        if every and self.cfg.checkpoint_out and self.agent.steps - self._last_saved_step >= every:
+            self.save()
+
+    def save(self) -> Path | None:
+        """Write ``checkpoint_out`` (atomic); None when no path is set."""
+        if not self.cfg.checkpoint_out:
+            return None
+        t0 = time.perf_counter()
+        path = self.agent.save(self.cfg.checkpoint_out, extra={"online": self.learner.stats()})
+        self._last_saved_step = self.agent.steps
+        self.get_logger().info(f"saved {path} at step {self.agent.steps} ({time.perf_counter() - t0:.2f}s)")
+        return path
+
+    def _srv_save(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            path = self.save()
+        except OSError as exc:
+            response.success, response.message = False, f"saving failed: {exc}"
+            return response
+        if path is None:
+            response.success, response.message = False, "checkpoint_out is empty: nowhere to save"
+        else:
+            response.success, response.message = True, str(path)
+        return response
+
+    def _srv_pause(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        self.learner.set_paused(bool(request.data))
+        response.success = True
+        response.message = "evaluation mode (no learning)" if self.learner.paused else "training mode"
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_param_change(self, section: str, cfg: Any, names: list[str]) -> None:
+        if section == "":
+            self.cfg = cfg
+        elif section == "agent" and "agent.lr" in names:
+            for group in self.agent.optimizer.param_groups:
+                group["lr"] = cfg.lr
+            self.agent.cfg.lr = cfg.lr
+        elif section == "replay" and "replay.lam" in names:
+            self.agent.replay_cfg.lam = cfg.lam
+            set_lam = getattr(self.agent.replay, "set_lam", None)
+            if callable(set_lam):
+                set_lam(cfg.lam)
+            elif hasattr(self.agent.replay, "lam"):
+                self.agent.replay.lam = cfg.lam
+        self.get_logger().info(f"parameters changed: {names}")
+
+    def on_shutdown(self, reason: str) -> None:
+        self._publish_metrics(None, {})  # final counters for the recorder / tests
+        try:
+            self.save()
+        except OSError as exc:
+            self.get_logger().error(f"final checkpoint failed: {exc}")
+        self.get_logger().info(
+            f"stopping ({reason}): {self.agent.steps} env steps, {self.learner.episodes} episodes, "
+            f"counters {self.learner.counters}, bad messages {self.bad_messages}"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``agent_node`` (ROS arguments: ``--ros-args -p name:=value --params-file f``)."""
+    return run_node(AgentNode, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,257 @@
+"""Config dataclasses as ROS 2 node parameters: declare, read back, validate on set.
+
+One ROS parameter per leaf field of a config dataclass (see :mod:`der_ros.configuration`).
+A *section* maps a name prefix to a config object: section ``"agent"`` with a
+:class:`~der_ros.agent.config.DQNConfig` gives ``agent.lr``, ``agent.gamma``...; a nested
+dataclass field adds another level (``scenario.observation.speed_scale``); the empty prefix
+``""`` gives top-level names (``mode``, ``max_steps``).
+
+Each parameter gets a :class:`rcl_interfaces.msg.ParameterDescriptor` built from the field's
+``param(...)`` metadata: the help text as description, ``FloatingPointRange`` /
+``IntegerRange`` from ``low``/``high``, the choices or exclusive bounds as
+``additional_constraints``, and ``read_only`` for every parameter the node did not list as
+mutable (changing a replay capacity or a network size under a running learner makes no sense,
+so the default is read-only).
+
+A set-parameters request is validated *before* it is applied: the candidate section is rebuilt
+with :func:`der_ros.configuration.from_dict` (field ranges, choices and the dataclass's
+cross-field ``check()``), and a :class:`~der_ros.configuration.ConfigError` turns into
+``SetParametersResult(successful=False, reason=...)``, so the node keeps its old value and the
+caller learns why.
+
+Public API (used by the agent, bridge and recorder nodes)::
+
+    bound = ConfigParameters(node, {"agent": DQNConfig(), "replay": ReplayConfig()},
+                             mutable={"replay.lam"}, on_change=callback)
+    bound.get("agent")          # the validated DQNConfig built from the node's parameters
+    flat_parameters("agent", DQNConfig())   # {"agent.lr": 0.0005, ...} (ROS-free; YAML tooling)
+"""
+
+from __future__ import annotations
+
+import array
+import copy
+import math
+import typing
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import is_dataclass
+from typing import Any
+
+from der_ros.configuration import ConfigError, FieldSpec, field_specs, from_dict, to_dict
+
+__all__ = ["ConfigParameters", "flat_parameters", "flat_specs", "unflatten", "params_file_section", "ChangeCallback"]
+
+#: ``on_change(section, new_config, changed_parameter_names)``, called after a set succeeded.
+ChangeCallback = Callable[[str, Any, list[str]], None]
+
+_INT64_MAX = 2**63 - 1
+
+
+def _join(prefix: str, name: str) -> str:
+    return f"{prefix}.{name}" if prefix else name
+
+
+def flat_specs(cls_or_obj: Any, prefix: str = "") -> dict[str, FieldSpec]:
+    """Parameter name -> :class:`FieldSpec` of every leaf field (nested dataclasses flattened)."""
+    out: dict[str, FieldSpec] = {}
+    for spec in field_specs(cls_or_obj):
+        name = _join(prefix, spec.name)
+        if is_dataclass(spec.type):
+            sub = getattr(cls_or_obj, spec.name) if not isinstance(cls_or_obj, type) else spec.type
+            out.update(flat_specs(sub, name))
+        else:
+            out[name] = spec
+    return out
+
+
+def flat_parameters(prefix: str, obj: Any) -> dict[str, Any]:
+    """Parameter name -> value of every leaf field of a config object (tuples become lists)."""
+    out: dict[str, Any] = {}
+
+    def walk(p: str, d: Mapping[str, Any]) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(_join(p, k), v)
+            else:
+                out[_join(p, k)] = v
+
+    walk(prefix, to_dict(obj))
+    return out
+
+
+def unflatten(prefix: str, values: Mapping[str, Any]) -> dict[str, Any]:
+    """Inverse of :func:`flat_parameters`: ``{"agent.lr": 1e-3}`` -> ``{"lr": 1e-3}`` (nested dicts)."""
+    out: dict[str, Any] = {}
+    cut = len(prefix) + 1 if prefix else 0
+    for name, value in values.items():
+        parts = name[cut:].split(".")
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
+
+
+def params_file_section(sections: Mapping[str, Any], extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``{"ros__parameters": {...}}`` of a node for a ROS params YAML file, from its sections.
+
+    Values that a params file cannot carry (``None``, empty lists: rcl's YAML parser has no type
+    for them) are left out; the node's declared defaults then apply.
+    """
+    flat: dict[str, Any] = {}
+    for prefix, obj in sections.items():
+        for name, value in flat_parameters(prefix, obj).items():
+            if value is None or (isinstance(value, list) and not value):
+                continue
+            flat[name] = value
+    flat.update(extra or {})
+    return {"ros__parameters": flat}
+
+
+def _ros_value(value: Any) -> Any:
+    """A value rclpy can store (lists for sequences; everything else unchanged)."""
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def _python_value(value: Any) -> Any:
+    """A parameter value as plain Python (rclpy returns ``array.array`` for numeric arrays)."""
+    if isinstance(value, array.array):
+        return value.tolist()
+    return value
+
+
+def _descriptor(name: str, spec: FieldSpec, read_only: bool, default: Any) -> Any:
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+
+    desc = ParameterDescriptor(name=name, description=spec.help, read_only=read_only)
+    constraints = []
+    if spec.choices is not None:
+        constraints.append(spec.describe_range())
+    elif spec.low is not None or spec.high is not None:
+        if not (spec.low_inclusive and spec.high_inclusive):
+            constraints.append(spec.describe_range())
+        if spec.type is float:
+            low = -math.inf if spec.low is None else float(spec.low)
+            high = math.inf if spec.high is None else float(spec.high)
+            desc.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+        elif spec.type is int:
+            low_i = -_INT64_MAX - 1 if spec.low is None else math.ceil(spec.low)
+            high_i = _INT64_MAX if spec.high is None else math.floor(spec.high)
+            desc.integer_range = [IntegerRange(from_value=low_i, to_value=high_i, step=1)]
+    if spec.nullable:
+        constraints.append("may be unset (null)")
+        desc.dynamic_typing = True
+    if isinstance(default, (list, tuple)) and len(default) == 0:
+        # rclpy infers BYTE_ARRAY for [], which would then refuse a string list: let the
+        # dataclass validation (on set) check the element type instead.
+        desc.dynamic_typing = True
+    desc.additional_constraints = "; ".join(constraints)
+    type_map = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+                float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+    if spec.type in type_map:
+        desc.type = type_map[spec.type]
+    elif typing.get_origin(spec.type) in (list, tuple):
+        args = typing.get_args(spec.type)
+        item = args[0] if args else None
+        desc.type = {
+            bool: ParameterType.PARAMETER_BOOL_ARRAY,
+            int: ParameterType.PARAMETER_INTEGER_ARRAY,
+            float: ParameterType.PARAMETER_DOUBLE_ARRAY,
+            str: ParameterType.PARAMETER_STRING_ARRAY,
+        }.get(item, ParameterType.PARAMETER_NOT_SET)
+    return desc
+
+
+class ConfigParameters:
+    """Binds config sections to a node's parameters (declare, read back, validate, notify).
+
+    ``sections`` maps a prefix to a config object whose values are the defaults (values in the
+    node's params file override them, as usual in ROS). ``mutable`` lists the full parameter
+    names that may change while the node runs (every other one is declared ``read_only``); the
+    node applies those changes in ``on_change``. Raises :class:`ConfigError` when the values
+    given at start-up do not validate.
+    """
+
+    def __init__(
+        self,
+        node: Any,
+        sections: Mapping[str, Any],
+        *,
+        mutable: Iterable[str] = (),
+        on_change: ChangeCallback | None = None,
+    ) -> None:
+
+        self._node = node
+        self._types = {prefix: type(obj) for prefix, obj in sections.items()}
+        self._specs: dict[str, dict[str, FieldSpec]] = {}
+        self._owner: dict[str, str] = {}
+        self._on_change = on_change
+        mutable = set(mutable)
+        for prefix, obj in sections.items():
+            specs = flat_specs(obj, prefix)
+            self._specs[prefix] = specs
+            values = flat_parameters(prefix, obj)
+            for name, spec in specs.items():
+                if name in self._owner:
+                    raise ValueError(f"parameter {name!r} declared by two sections")
+                self._owner[name] = prefix
+                desc = _descriptor(name, spec, read_only=name not in mutable, default=values[name])
+                value = _ros_value(values[name])
+                if value is None:
+                    node.declare_parameter(name, None, desc)  # dynamic_typing is set for nullable fields
+                else:
+                    node.declare_parameter(name, value, desc)
+        missing = mutable.difference(self._owner)
+        if missing:
+            raise ValueError(f"mutable parameters {sorted(missing)} are not fields of any section")
+        self._current: dict[str, Any] = {}
+        for prefix in sections:
+            self._current[prefix] = self._build(prefix, {}, source=f"node {node.get_name()} parameters")
+        node.add_on_set_parameters_callback(self._validate)
+        node.add_post_set_parameters_callback(self._applied)
+
+    # -- reading -------------------------------------------------------------------------------
+    def get(self, section: str) -> Any:
+        """The current, validated config object of ``section`` (a fresh copy)."""
+        return copy.deepcopy(self._current[section])
+
+    @property
+    def names(self) -> list[str]:
+        """Every parameter name this binding declared."""
+        return sorted(self._owner)
+
+    def _value(self, name: str) -> Any:
+        return _python_value(self._node.get_parameter(name).value)
+
+    def _build(self, prefix: str, overrides: Mapping[str, Any], source: str) -> Any:
+        values = {name: overrides[name] if name in overrides else self._value(name) for name in self._specs[prefix]}
+        return from_dict(self._types[prefix], unflatten(prefix, values), source=source)
+
+    # -- set-parameters callbacks ----------------------------------------------------------------
+    def _by_section(self, params: Iterable[Any]) -> dict[str, dict[str, Any]]:
+        grouped: dict[str, dict[str, Any]] = {}
+        for p in params:
+            prefix = self._owner.get(p.name)
+            if prefix is not None:
+                grouped.setdefault(prefix, {})[p.name] = _python_value(p.value)
+        return grouped
+
+    def _validate(self, params: list[Any]) -> Any:
+        from rcl_interfaces.msg import SetParametersResult
+
+        for prefix, new in self._by_section(params).items():
+            try:
+                self._build(prefix, new, source="set_parameters")
+            except ConfigError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            except (TypeError, ValueError) as exc:  # e.g. a value the dataclass cannot hold
+                return SetParametersResult(successful=False, reason=f"set_parameters: {exc}")
+        return SetParametersResult(successful=True)
+
+    def _applied(self, params: list[Any]) -> None:
+        for prefix, new in self._by_section(params).items():
+            self._current[prefix] = self._build(prefix, {}, source="set_parameters")
+            if self._on_change is not None:
+                self._on_change(prefix, self.get(prefix), sorted(new))

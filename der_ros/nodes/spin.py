@@ -1,0 +1,73 @@
+"""Process life cycle shared by the node executables: init, spin until done or signalled, clean up.
+
+rclpy's own SIGINT/SIGTERM handlers shut the context down from inside the signal handler, after
+which a node can no longer publish or save through ROS. The node executables instead install
+handlers that only set a flag; the spin loop then returns, the node's ``on_shutdown()`` runs
+with ROS still up (final checkpoint, summary log, last diagnostics), and the process exits 0.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+__all__ = ["ManagedNode", "run_node"]
+
+
+class ManagedNode(Protocol):
+    """What :func:`run_node` needs from a node besides being an ``rclpy.node.Node``."""
+
+    #: set to True by the node when it has finished its work (e.g. ``max_steps`` reached)
+    finished: bool
+
+    def on_shutdown(self, reason: str) -> None: ...
+
+
+def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll_s: float = 0.1) -> int:
+    """Create the node with ``factory`` (after ``rclpy.init``) and spin it on a single-threaded executor.
+
+    Returns the process exit code: 0 after a signal or when the node set ``finished``, 1 if
+    the node could not be created (bad parameters: the error is logged, not a traceback).
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from der_ros.configuration import ConfigError
+
+    args = list(sys.argv if argv is None else argv)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop: dict[str, str] = {}
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop["reason"] = signal.Signals(signum).name
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        node = factory()
+    except (ConfigError, ValueError) as exc:
+        rclpy.logging.get_logger("der_ros").error(f"could not start: {exc}")
+        rclpy.try_shutdown()
+        return 1
+    # rclpy.experimental.EventsExecutor (present in 7.1) crashed here ("SystemError: null argument to
+    # internal routine") when a timer is destroyed from its own callback; the standard one is used.
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    reason = "finished"
+    try:
+        while not node.finished and "reason" not in stop:
+            executor.spin_once(timeout_sec=poll_s)
+        reason = stop.get("reason", "finished")
+    except (KeyboardInterrupt, ExternalShutdownException):
+        reason = "interrupted"
+    finally:
+        try:
+            node.on_shutdown(reason)
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+            node.destroy_node()
+            rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,211 @@
+"""The replay buffer contract shared by every sampler (see docs/architecture.md).
+
+A buffer is storage + sampler: :class:`~der_ros.replay.storage.RingStorage` holds the
+transitions, the subclass decides which slots a batch reads. Every kind has the same
+methods -- ``update_priorities`` is a no-op where it means nothing -- so the learner never
+special-cases the buffer it was given.
+
+State is a flat ``dict[str, np.ndarray]`` (keys like ``"h1/obs"``), which :meth:`save`
+writes as one ``.npz`` without pickling anything (``allow_pickle=False`` on load).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+
+__all__ = ["Batch", "ReplayBuffer", "load_replay", "register", "STATE_FORMAT"]
+
+#: bumped whenever the on-disk layout changes incompatibly
+STATE_FORMAT = 1
+
+_REGISTRY: dict[str, type[ReplayBuffer]] = {}
+
+
+class Batch(NamedTuple):
+    """One sampled minibatch. Row i of every array is the same transition."""
+
+    obs: np.ndarray  # (B, *obs_shape), storage dtype (uint8 frames stay uint8)
+    actions: np.ndarray  # (B,) int64
+    rewards: np.ndarray  # (B,) float32
+    next_obs: np.ndarray  # (B, *obs_shape)
+    terminated: np.ndarray  # (B,) bool -- cuts the bootstrap
+    truncated: np.ndarray  # (B,) bool -- never cuts the bootstrap
+    indices: np.ndarray  # (B,) int64 opaque handles for update_priorities
+    weights: np.ndarray  # (B,) float32 importance weights; 1.0 where the method has none
+    source: np.ndarray  # (B,) uint8: 0 = main/H1, 1 = H2
+
+
+def register(cls: type[ReplayBuffer]) -> type[ReplayBuffer]:
+    """Class decorator: make ``cls`` loadable by :func:`load_replay` under ``cls.kind``."""
+    _REGISTRY[cls.kind] = cls
+    return cls
+
+
+def rng_state_to_array(rng: np.random.Generator) -> np.ndarray:
+    """The generator state as a 0-d unicode array (JSON keeps the 128-bit PCG64 integers exact)."""
+    return np.array(json.dumps(rng.bit_generator.state))
+
+
+def rng_from_array(arr: np.ndarray) -> np.random.Generator:
+    state = json.loads(str(arr[()]))
+    bitgen = getattr(np.random, state["bit_generator"])()
+    bitgen.state = state
+    return np.random.Generator(bitgen)
+
+
+class ReplayBuffer(ABC):
+    """Common interface of the uniform, prioritized and double replay buffers."""
+
+    #: stable name used in saved files and ``ReplayConfig.kind``
+    kind: ClassVar[str] = ""
+
+    # ------------------------------------------------------------------ writing
+    def add(
+        self,
+        obs: np.ndarray,
+        action: int,
+        reward: float,
+        next_obs: np.ndarray,
+        terminated: bool,
+        truncated: bool,
+    ) -> None:
+        """Store one transition (s_k, a_k, r_{k+1}, s_{k+1}, terminated_{k+1}, truncated_{k+1})."""
+        self.add_batch(
+            np.asarray(obs)[None],
+            np.asarray([action]),
+            np.asarray([reward]),
+            np.asarray(next_obs)[None],
+            np.asarray([terminated]),
+            np.asarray([truncated]),
+        )
+
+    @abstractmethod
+    def add_batch(
+        self,
+        obs: np.ndarray,
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        next_obs: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+    ) -> None:
+        """Store many transitions at once (leading axis = transition), in order, as if by
+        repeated :meth:`add` calls. Used to fill buffers from recorded bags."""
+
+    # ------------------------------------------------------------------ sampling
+    @abstractmethod
+    def sample(self, batch_size: int) -> Batch:
+        """Draw one minibatch of ``batch_size`` transitions."""
+
+    @abstractmethod
+    def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
+        """Report the TD errors of the batch just used in a gradient step (no-op for uniform)."""
+
+    @abstractmethod
+    def __len__(self) -> int:
+        """Number of transitions that can currently be sampled."""
+
+    @abstractmethod
+    def stats(self) -> dict[str, float]:
+        """Metrics with stable names (``replay/size``, ...)."""
+
+    # ------------------------------------------------------------------ state
+    @abstractmethod
+    def _ctor_kwargs(self) -> dict[str, Any]:
+        """JSON-able constructor arguments; :func:`load_replay` rebuilds the buffer from them."""
+
+    @abstractmethod
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """Every array and counter that makes up the state (besides rng and ctor arguments)."""
+
+    @abstractmethod
+    def _set_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Inverse of :meth:`_arrays`; shapes/dtypes were already checked."""
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Everything needed to continue identically: data, trees, counters, RNG state.
+
+        Arrays are copies, so the dict stays valid while the buffer keeps changing.
+        """
+        state = {
+            "format": np.array(STATE_FORMAT, dtype=np.int64),
+            "kind": np.array(self.kind),
+            "ctor": np.array(json.dumps(self._ctor_kwargs())),
+            "rng": rng_state_to_array(self._rng),
+        }
+        for key, arr in self._arrays().items():
+            state[key] = np.array(arr, copy=True)
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict`; the buffer must have been built with the same arguments."""
+        kind = str(np.asarray(state.get("kind", ""))[()])
+        if kind != self.kind:
+            raise ValueError(f"replay state is of kind {kind!r}, this buffer is {self.kind!r}")
+        fmt = int(np.asarray(state.get("format", -1)))
+        if fmt != STATE_FORMAT:
+            raise ValueError(f"replay state format {fmt}, expected {STATE_FORMAT}")
+        ctor = json.loads(str(np.asarray(state["ctor"])[()]))
+        mine = json.loads(json.dumps(self._ctor_kwargs()))
+        if ctor != mine:
+            diff = sorted(k for k in set(ctor) | set(mine) if ctor.get(k) != mine.get(k))
+            raise ValueError(
+                "replay state was saved by a buffer with different arguments: "
+                + ", ".join(f"{k} = {ctor.get(k)!r} (this buffer: {mine.get(k)!r})" for k in diff)
+            )
+        current = self._arrays()
+        arrays: dict[str, np.ndarray] = {}
+        for key, ref in current.items():
+            if key not in state:
+                raise ValueError(f"replay state lacks the array {key!r}")
+            arr = np.asarray(state[key])
+            if arr.shape != ref.shape or arr.dtype != ref.dtype:
+                raise ValueError(
+                    f"replay state array {key!r} has shape {arr.shape} dtype {arr.dtype}, "
+                    f"expected {ref.shape} {ref.dtype}"
+                )
+            arrays[key] = arr
+        self._set_arrays(arrays)
+        self._rng = rng_from_array(np.asarray(state["rng"]))
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write :meth:`state_dict` to ``path`` (.npz) atomically: temp file in the same
+        directory, fsync, then ``os.replace`` -- a crash never leaves a half-written file."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **self.state_dict())
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            raise
+
+
+def load_replay(path: str | os.PathLike[str]) -> ReplayBuffer:
+    """Rebuild a buffer written by :meth:`ReplayBuffer.save`; sampling continues identically."""
+    # the import registers the concrete classes
+    from der_ros.replay import double_replay, prioritized, uniform  # noqa: F401
+
+    with np.load(Path(path), allow_pickle=False) as data:
+        state = {k: data[k] for k in data.files}
+    kind = str(state["kind"][()])
+    if kind not in _REGISTRY:
+        raise ValueError(f"{path}: unknown replay kind {kind!r}; expected one of {sorted(_REGISTRY)}")
+    ctor = json.loads(str(state["ctor"][()]))
+    buf = _REGISTRY[kind](**ctor, check_memory=False)
+    buf.load_state_dict(state)
+    return buf

@@ -1,0 +1,85 @@
+"""make_replay: build the buffer a :class:`ReplayConfig` describes, for a given batch size.
+
+This is where the batch-size dependent defaults of DER are resolved (the paper's
+"N_2 = batch size x 100" and "H_2 ... an adequate amount of transitions to train" =
+one batch) and where the rules that need the batch size are checked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from der_ros.configuration import ConfigError, validate
+from der_ros.replay.base import ReplayBuffer
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.double_replay import DoubleReplay
+from der_ros.replay.prioritized import PrioritizedReplay
+from der_ros.replay.uniform import UniformReplay
+
+__all__ = ["make_replay", "resolve_h2"]
+
+
+def resolve_h2(cfg: ReplayConfig, batch_size: int) -> tuple[int, int]:
+    """(h2_capacity, h2_min_size) with the defaults filled in: 100 x B and B."""
+    n2 = cfg.h2_capacity if cfg.h2_capacity is not None else 100 * batch_size
+    k = cfg.h2_min_size if cfg.h2_min_size is not None else batch_size
+    return int(n2), int(k)
+
+
+def make_replay(
+    cfg: ReplayConfig,
+    obs_shape: Sequence[int],
+    obs_dtype: np.dtype | str | type,
+    batch_size: int,
+    seed: int | None = 0,
+    available_bytes: int | None = None,
+) -> ReplayBuffer:
+    """The replay buffer for ``cfg``; raises :class:`ConfigError` naming the field and value
+    for bad parameters, including a batch larger than a capacity."""
+    validate(cfg, "replay")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ConfigError(f"replay: batch_size = {batch_size!r}, expected an integer >= 1")
+    batch_size = int(batch_size)
+    if batch_size > cfg.capacity:
+        raise ConfigError(f"replay: batch_size = {batch_size}, expected <= capacity ({cfg.capacity})")
+    if cfg.kind == "uniform":
+        return UniformReplay(cfg.capacity, obs_shape, obs_dtype, seed=seed, available_bytes=available_bytes)
+    if cfg.kind == "per":
+        return PrioritizedReplay(
+            cfg.capacity,
+            obs_shape,
+            obs_dtype,
+            alpha=cfg.alpha,
+            beta0=cfg.beta0,
+            beta_steps=cfg.beta_steps,
+            eps=cfg.per_eps,
+            seed=seed,
+            available_bytes=available_bytes,
+        )
+    if cfg.kind == "der":
+        n2, k = resolve_h2(cfg, batch_size)
+        if batch_size > n2:
+            raise ConfigError(f"replay: batch_size = {batch_size}, expected <= h2_capacity ({n2})")
+        if k > n2:
+            raise ConfigError(f"replay: h2_min_size = {k}, expected <= h2_capacity ({n2}); H2 would never be ready")
+        try:
+            return DoubleReplay(
+                cfg.capacity,
+                n2,
+                obs_shape,
+                obs_dtype,
+                lam=cfg.lam,
+                h2_min_size=k,
+                p_promote=cfg.p_promote,
+                promote_mode=cfg.promote_mode,
+                h2_eviction=cfg.h2_eviction,
+                eq3_sum=cfg.eq3_sum,
+                max_log_weight=cfg.max_log_weight,
+                seed=seed,
+                available_bytes=available_bytes,
+            )
+        except ConfigError as exc:
+            raise type(exc)(f"replay: {exc}") from None
+    raise ConfigError(f"replay: kind = {cfg.kind!r}, expected one of 'uniform', 'per', 'der'")  # pragma: no cover

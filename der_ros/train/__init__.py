@@ -1,0 +1,1 @@
+"""Training: env factory, configs, metrics and the runner behind `der train`."""

@@ -1,0 +1,212 @@
+"""Training configs: EnvConfig, TrainConfig and the four-section YAML layout.
+
+A training YAML file has up to four top-level sections, each loaded into its own dataclass::
+
+    env:    EnvConfig     which environment and its preprocessing
+    agent:  DQNConfig     learner hyperparameters (der_ros.agent.config)
+    replay: ReplayConfig  replay kind and sizes (der_ros.replay.config)
+    train:  TrainConfig   steps, seed, logging, checkpoints, run directory
+
+Unknown sections or keys, wrong types and out-of-range values raise :class:`ConfigError` naming
+the file, the section, the key and the value, before anything starts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from der_ros.agent.config import DQNConfig
+from der_ros.configuration import ConfigError, from_dict, param, to_dict
+from der_ros.replay.config import ReplayConfig
+
+__all__ = [
+    "EnvConfig",
+    "TrainConfig",
+    "ExperimentConfig",
+    "SECTIONS",
+    "load_experiment_config",
+    "experiment_from_dict",
+    "apply_dotted_overrides",
+    "save_experiment_config",
+]
+
+
+@dataclass
+class EnvConfig:
+    """Which environment to train on, and the Atari preprocessing (ignored for other ids)."""
+
+    id: str = param(
+        "CartPole-v1",
+        "gymnasium id: 'CartPole-v1', an Atari id ('ALE/Breakout-v5', 'BreakoutNoFrameskip-v4'), "
+        "or a 'der_ros/...' SUMO id (registered by importing sumo_bridge)",
+    )
+    max_episode_steps: int | None = param(None, "override the env's time limit (None = the registered one)", low=1)
+    frame_skip: int = param(4, "Atari: repeat each action this many frames (max-pooled over the last two)", low=1)
+    frame_stack: int = param(4, "Atari: stack this many preprocessed frames (paper: 84x84x4 input)", low=1)
+    screen_size: int = param(84, "Atari: frames are resized to screen_size x screen_size grey images", low=8)
+    noop_max: int = param(30, "Atari: up to this many no-op actions at reset (random start)", low=0)
+    terminal_on_life_loss: bool = param(
+        False,
+        "Atari: signal terminated=True to the learner when a life is lost; the game itself continues "
+        "(episode returns are still whole-game scores)",
+    )
+    clip_rewards: bool = param(True, "Atari: clip rewards given to the learner to [-1, 1] (scores stay raw)")
+    sticky_action_prob: float = param(
+        0.0,
+        "Atari: probability of repeating the previous action (0 = the classic DQN protocol, "
+        "NoFrameskip-v4 style; 0.25 = ALE v5 default)",
+        low=0.0,
+        high=1.0,
+    )
+    kwargs: dict = param(
+        default_factory=dict, help="extra keyword arguments for gymnasium.make (e.g. a SUMO scenario's settings)"
+    )
+
+    def check(self) -> None:
+        if not isinstance(self.kwargs, dict):
+            raise ConfigError(f"kwargs = {self.kwargs!r}, expected a mapping of gymnasium.make keyword arguments")
+
+
+@dataclass
+class TrainConfig:
+    """One training run: how long, which seed, where to write, how often to log and checkpoint."""
+
+    total_steps: int = param(10_000, "environment steps to train for (paper: 10,000 CartPole, >= 200,000 Atari)", low=1)
+    seed: int = param(0, "seed of the environment, the exploration and the replay sampling", low=0)
+    device: str = param("auto", "torch device: auto (cuda when present), cpu or cuda", choices=("auto", "cpu", "cuda"))
+    threads: int = param(1, "torch intra-op threads (1 is fastest for small networks and fair on shared cores)", low=1)
+    run_dir: str | None = param(None, "output folder; None = runs/<env>-<replay>-<seed>-<timestamp> under runs_root")
+    runs_root: str = param("runs", "parent folder of generated run directories")
+    log_interval: int = param(
+        100, "write averaged training metrics (losses/*, replay/*, charts/*) every this many env steps", low=1
+    )
+    checkpoint_interval: int = param(
+        0, "write runs/.../checkpoint.pt every this many env steps (0 = only at the end and on Ctrl-C)", low=0
+    )
+    eval_interval: int = param(0, "greedy evaluation every this many env steps (0 = off)", low=0)
+    eval_episodes: int = param(5, "episodes per evaluation", low=1)
+    tensorboard: bool = param(True, "also write TensorBoard event files (metrics.csv is always written)")
+    progress: bool = param(True, "show a progress bar (only on a terminal)")
+    save_final_checkpoint: bool = param(True, "write checkpoint.pt when training ends")
+
+
+SECTIONS: dict[str, type] = {"env": EnvConfig, "agent": DQNConfig, "replay": ReplayConfig, "train": TrainConfig}
+
+
+@dataclass
+class ExperimentConfig:
+    """All four sections of a training YAML file."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    agent: DQNConfig = field(default_factory=DQNConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return {name: to_dict(getattr(self, name)) for name in SECTIONS}
+
+
+def experiment_from_dict(data: dict[str, Any] | None, source: str = "config") -> ExperimentConfig:
+    """Build an :class:`ExperimentConfig` from ``{section: {key: value}}``; unknown sections are errors."""
+    data = dict(data or {})
+    unknown = sorted(set(data) - set(SECTIONS))
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown section {unknown[0]!r} (value {data[unknown[0]]!r}); "
+            f"known sections: {', '.join(SECTIONS)}"
+        )
+    parts = {}
+    for name, cls in SECTIONS.items():
+        section = data.get(name) or {}
+        if not isinstance(section, dict):
+            raise ConfigError(f"{source}: section {name!r} = {section!r}, expected a mapping")
+        parts[name] = from_dict(cls, section, source=f"{source} [{name}]")
+    return ExperimentConfig(**parts)
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    return data
+
+
+def apply_dotted_overrides(
+    data: dict[str, Any], overrides: dict[str, Any] | list[str], source: str = "command line"
+) -> dict[str, Any]:
+    """Apply ``{"section.key": value}`` (or ``["section.key=yaml-value", ...]``) to a raw config mapping.
+
+    Values given as strings are parsed as YAML (``--set agent.hidden_sizes=[256,256]``). Unknown
+    sections and keys are reported by the later validation, naming ``source``.
+    """
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    items: list[tuple[str, Any]]
+    if isinstance(overrides, dict):
+        items = list(overrides.items())
+    else:
+        items = []
+        for text in overrides:
+            if "=" not in text:
+                raise ConfigError(f"{source}: override {text!r}, expected section.key=value")
+            key, raw = text.split("=", 1)
+            try:
+                value = yaml.safe_load(raw)
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{source}: override {text!r}: value is not valid YAML: {exc}") from None
+            items.append((key.strip(), value))
+    for key, value in items:
+        if value is None and isinstance(overrides, dict):
+            continue
+        if "." not in key:
+            raise ConfigError(
+                f"{source}: override key {key!r} = {value!r}, expected section.key (sections: {', '.join(SECTIONS)})"
+            )
+        section, name = key.split(".", 1)
+        if section not in SECTIONS:
+            raise ConfigError(
+                f"{source}: unknown section {section!r} in {key!r} = {value!r}; known: {', '.join(SECTIONS)}"
+            )
+        sec = out.setdefault(section, {})
+        if not isinstance(sec, dict):
+            raise ConfigError(f"{source}: section {section!r} is not a mapping")
+        sec[name] = value
+    return out
+
+
+def load_experiment_config(
+    path: str | Path | None, overrides: dict[str, Any] | list[str] | None = None
+) -> ExperimentConfig:
+    """Load a training YAML file (or the defaults when ``path`` is None) and apply overrides.
+
+    The file is validated on its own first, so an error in the file names the file; then the
+    overrides are applied and validated again, naming the command line.
+    """
+    if path is None:
+        data: dict[str, Any] = {}
+        source = "defaults"
+    else:
+        path = Path(path)
+        data = _read_yaml(path)
+        source = str(path)
+    experiment_from_dict(data, source=source)  # errors in the file itself name the file
+    if overrides:
+        data = apply_dotted_overrides(data, overrides)
+        return experiment_from_dict(data, source=f"{source} + command line")
+    return experiment_from_dict(data, source=source)
+
+
+def save_experiment_config(cfg: ExperimentConfig, path: str | Path) -> None:
+    """Write the resolved config as YAML (atomically), in the same four-section layout."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    tmp.replace(path)

@@ -1,0 +1,176 @@
+"""Environment factory: CartPole, Atari with the standard DQN preprocessing, and the SUMO envs.
+
+Every environment comes wrapped in ``RecordEpisodeStatistics`` so the runner reads episode
+returns from ``info["episode"]``. For Atari that wrapper sits *below* reward clipping and the
+episodic-life signal, so reported returns are raw whole-game scores (what Table 2 compares)
+while the learner sees clipped rewards and (optionally) a terminal on each lost life.
+
+Atari stack (paper section 5: grey, 84x84, 4 stacked frames; DQN conventions for the rest)::
+
+    AtariEnv(frameskip=1, repeat_action_probability=sticky)
+      -> AtariPreprocessing(noop_max, frame_skip, screen_size, grey, uint8)
+      -> RecordEpisodeStatistics
+      -> EpisodicLife            (optional: terminated on life loss, game continues on reset)
+      -> ClipReward(-1, 1)       (optional)
+      -> FrameStackObservation   -> obs (frame_stack, 84, 84) uint8
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+__all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife"]
+
+log = logging.getLogger(__name__)
+
+_ALE_REGISTERED = False
+
+
+def _register_ale() -> None:
+    global _ALE_REGISTERED
+    if not _ALE_REGISTERED:
+        import ale_py
+
+        gym.register_envs(ale_py)
+        _ALE_REGISTERED = True
+
+
+def is_atari_id(env_id: str) -> bool:
+    """True for ids served by ale_py ('ALE/Breakout-v5', 'BreakoutNoFrameskip-v4', ...)."""
+    if env_id.startswith("ALE/"):
+        return True
+    if env_id.startswith("der_ros/"):
+        return False
+    _register_ale()
+    try:
+        spec = gym.spec(env_id)
+    except gym.error.Error:
+        return False
+    entry = spec.entry_point if isinstance(spec.entry_point, str) else getattr(spec.entry_point, "__module__", "")
+    return "ale_py" in str(entry)
+
+
+class EpisodicLife(gym.Wrapper):
+    """Tell the learner ``terminated=True`` when a life is lost, without restarting the game.
+
+    gymnasium's ``AtariPreprocessing(terminal_on_life_loss=True)`` resets the whole game at the
+    next ``reset()``, so the agent would never play with fewer lives. Here ``reset()`` after a
+    life loss only takes one no-op step and continues; a real reset happens when the game is over.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self._lives = 0
+        self._game_over = True
+
+    def _ale_lives(self) -> int:
+        return int(self.env.unwrapped.ale.lives())
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._game_over = bool(terminated or truncated)
+        lives = self._ale_lives()
+        if 0 < lives < self._lives:
+            terminated = True
+            info = dict(info, life_lost=True)
+        self._lives = lives
+        return obs, reward, terminated, truncated, info
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        if self._game_over or seed is not None:
+            obs, info = self.env.reset(seed=seed, options=options)
+        else:
+            obs, _r, terminated, truncated, info = self.env.step(0)
+            if terminated or truncated:  # the no-op ended the game: its statistics stay in `info`
+                episode = info.get("episode")
+                obs, info = self.env.reset(options=options)
+                if episode is not None:
+                    info = dict(info, episode=episode)
+        self._game_over = False
+        self._lives = self._ale_lives()
+        return obs, info
+
+
+def make_env(
+    env_id: str,
+    seed: int,
+    *,
+    max_episode_steps: int | None = None,
+    frame_skip: int = 4,
+    frame_stack: int = 4,
+    screen_size: int = 84,
+    noop_max: int = 30,
+    terminal_on_life_loss: bool = False,
+    clip_rewards: bool = True,
+    sticky_action_prob: float = 0.0,
+    **make_kwargs: Any,
+) -> gym.Env:
+    """Build one environment for ``env_id`` (not yet reset; pass ``seed`` to the first ``reset``).
+
+    The action space is seeded with ``seed``. Atari options are ignored for non-Atari ids;
+    ``make_kwargs`` go to ``gymnasium.make``. Ids starting with ``der_ros/`` import
+    ``sumo_bridge``, which registers the SUMO lane-change environments.
+    """
+    if env_id.startswith("der_ros/"):
+        import sumo_bridge  # noqa: F401  (registers der_ros/* ids)
+    time_limit = {"max_episode_steps": max_episode_steps} if max_episode_steps is not None else {}
+    if is_atari_id(env_id):
+        _register_ale()
+        env = gym.make(
+            env_id,
+            frameskip=1,
+            repeat_action_probability=float(sticky_action_prob),
+            **time_limit,
+            **make_kwargs,
+        )
+        env = gym.wrappers.AtariPreprocessing(
+            env,
+            noop_max=noop_max,
+            frame_skip=frame_skip,
+            screen_size=screen_size,
+            terminal_on_life_loss=False,
+            grayscale_obs=True,
+            scale_obs=False,
+        )
+        env = gym.wrappers.RecordEpisodeStatistics(env)
+        if terminal_on_life_loss:
+            env = EpisodicLife(env)
+        if clip_rewards:
+            env = gym.wrappers.ClipReward(env, -1.0, 1.0)
+        env = gym.wrappers.FrameStackObservation(env, frame_stack)
+    else:
+        env = gym.make(env_id, **time_limit, **make_kwargs)
+        env = gym.wrappers.RecordEpisodeStatistics(env)
+    if not isinstance(env.action_space, gym.spaces.Discrete):
+        raise ValueError(f"env {env_id!r}: action space {env.action_space}, DQN needs Discrete actions")
+    env.action_space.seed(int(seed))
+    return env
+
+
+def make_env_from_config(cfg: Any, seed: int) -> gym.Env:
+    """:func:`make_env` from an :class:`der_ros.train.config.EnvConfig`."""
+    return make_env(
+        cfg.id,
+        seed,
+        max_episode_steps=cfg.max_episode_steps,
+        frame_skip=cfg.frame_skip,
+        frame_stack=cfg.frame_stack,
+        screen_size=cfg.screen_size,
+        noop_max=cfg.noop_max,
+        terminal_on_life_loss=cfg.terminal_on_life_loss,
+        clip_rewards=cfg.clip_rewards,
+        sticky_action_prob=cfg.sticky_action_prob,
+        **dict(cfg.kwargs),
+    )
+
+
+def obs_spec(env: gym.Env) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the observations the agent stores."""
+    space = env.observation_space
+    if not isinstance(space, gym.spaces.Box):
+        raise ValueError(f"observation space {space}, expected a Box")
+    return tuple(int(s) for s in space.shape), np.dtype(space.dtype)

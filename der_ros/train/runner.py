@@ -1,0 +1,332 @@
+"""The training loop behind ``der train`` (and each run of the experiment suites).
+
+One process, one environment, one :class:`DQNAgent` driven through its step-wise API. Writes a
+run directory::
+
+    config.yaml     the resolved four-section config (rerun with `der train --config` on it)
+    metrics.csv     step,wall_time,name,value (averaged over train.log_interval env steps)
+    episodes.csv    episode,step,return,length,wall_time (training episodes, raw returns)
+    tb/             TensorBoard event files with the same names
+    checkpoint.pt   agent (nets, optimizer, replay, RNGs, counters) + runner state + env state
+    summary.json    written when the run ends (finished or interrupted)
+
+Resuming (``resume=<checkpoint>``) restores everything in the checkpoint. The environment is
+restored exactly when it can be pickled (CartPole and other pure-Python envs); otherwise (e.g.
+libsumo) the episode in progress is dropped and a fresh one starts, seeded from the step count.
+Ctrl-C (SIGINT) sets a flag that the loop checks after each complete step, so the checkpoint it
+writes is always consistent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import pickle
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from der_ros.agent.dqn import DQNAgent, read_checkpoint
+from der_ros.experiments.stats import max_moving_average
+from der_ros.train.config import ExperimentConfig, save_experiment_config
+from der_ros.train.envs import make_env_from_config, obs_spec
+from der_ros.train.metrics import MeanAccumulator, MetricsWriter
+
+__all__ = ["RunSummary", "train", "default_run_dir", "replay_label", "evaluate"]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "checkpoint.pt"
+SUMMARY_NAME = "summary.json"
+
+
+@dataclass
+class RunSummary:
+    """What a finished (or interrupted) run reports; also written as ``summary.json``."""
+
+    run_dir: str
+    steps: int
+    episodes: int
+    interrupted: bool
+    wall_time_s: float
+    steps_per_s: float
+    mean_return: float
+    max_ma20_return: float
+    checkpoint: str | None
+
+
+def replay_label(replay_cfg: Any) -> str:
+    """Short method label for directory names: 'uniform', 'per', 'der0.9'."""
+    kind = str(getattr(replay_cfg, "kind", "replay"))
+    if kind == "der":
+        return f"der{getattr(replay_cfg, 'lam', '')}"
+    return kind
+
+
+def default_run_dir(cfg: ExperimentConfig) -> Path:
+    """``<runs_root>/<env>-<replay>-<seed>-<UTC timestamp>``."""
+    env = cfg.env.id.replace("/", "_")
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S")
+    return Path(cfg.train.runs_root) / f"{env}-{replay_label(cfg.replay)}-{cfg.train.seed}-{stamp}"
+
+
+class _StopFlag:
+    """SIGINT -> stop after the current step (second Ctrl-C raises KeyboardInterrupt at once)."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self._previous: Any = None
+        self._installed = False
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.stop:
+            raise KeyboardInterrupt
+        self.stop = True
+        log.warning("interrupt: finishing this step, writing a checkpoint (Ctrl-C again to abort)")
+
+    def __enter__(self) -> _StopFlag:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+            self._installed = True
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._installed:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+def _try_pickle_env(env: gym.Env) -> bytes | None:
+    try:
+        return pickle.dumps(env, protocol=4)
+    except Exception as exc:  # noqa: BLE001 - any env that cannot pickle falls back to a reset
+        log.debug("environment state not saved (%s); a resumed run starts a new episode", exc)
+        return None
+
+
+class _Progress:
+    """A rich progress bar with the last episode return and steps/s; silent when not on a terminal."""
+
+    def __init__(self, total: int, start: int, enabled: bool, description: str) -> None:
+        self._progress = None
+        if not enabled:
+            return
+        import sys
+
+        if not sys.stderr.isatty():
+            return
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("return {task.fields[ret]}"),
+            TextColumn("{task.fields[sps]} steps/s"),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+            transient=False,
+        )
+        self._task = self._progress.add_task(description, total=total, completed=start, ret="-", sps="-")
+        self._progress.start()
+
+    def update(self, step: int, ret: float | None, sps: float | None) -> None:
+        if self._progress is None:
+            return
+        fields: dict[str, Any] = {}
+        if ret is not None:
+            fields["ret"] = f"{ret:.1f}"
+        if sps is not None:
+            fields["sps"] = f"{sps:.0f}"
+        self._progress.update(self._task, completed=step, **fields)
+
+    def close(self) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+
+def evaluate(agent: DQNAgent, env: gym.Env, episodes: int, seed: int) -> float:
+    """Mean return of ``episodes`` episodes with ``agent.act(explore=False)``; resets seeded ``seed + k``."""
+    returns = []
+    for k in range(episodes):
+        obs, _ = env.reset(seed=seed + k)
+        total, done = 0.0, False
+        while not done:
+            obs, r, terminated, truncated, info = env.step(agent.act(obs, explore=False))
+            total += float(r)
+            done = bool(terminated or truncated)
+            if done and "episode" not in info and getattr(env.unwrapped, "ale", None) is not None:
+                # Atari with episodic life: only a game over ends an evaluation episode.
+                done = bool(truncated) or env.unwrapped.ale.game_over()
+                if not done:
+                    obs, _ = env.reset()
+        if "episode" in info:
+            total = float(np.asarray(info["episode"]["r"]))
+        returns.append(total)
+    return float(np.mean(returns))
+
+
+def train(
+    cfg: ExperimentConfig,
+    run_dir: str | Path | None = None,
+    resume: str | Path | None = None,
+    on_episode: Callable[[int, int, float], None] | None = None,
+) -> RunSummary:
+    """Train per ``cfg``; returns a :class:`RunSummary`. ``resume``: a checkpoint written by a run."""
+    t_cfg = cfg.train
+    torch.set_num_threads(t_cfg.threads)
+    run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
+    run_path.mkdir(parents=True, exist_ok=True)
+    save_experiment_config(cfg, run_path / "config.yaml")
+
+    env = make_env_from_config(cfg.env, t_cfg.seed)
+    obs_shape, obs_dtype = obs_spec(env)
+    n_actions = int(env.action_space.n)
+    agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
+    acc = MeanAccumulator()
+
+    episode = 0
+    last_return: float | None = None
+    returns: list[float] = []
+    wall_offset = 0.0
+    obs: np.ndarray
+    resume_step: int | None = None
+    if resume is not None:
+        ckpt = read_checkpoint(resume, agent.device)
+        agent.load_state_dict(ckpt["agent"])
+        runner = ckpt["extra"]["runner"]
+        resume_step = agent.steps
+        episode = int(runner["episode"])
+        returns = [float(x) for x in runner["returns"]]
+        last_return = returns[-1] if returns else None
+        wall_offset = float(runner["wall_time"])
+        acc.load_state_dict(runner["accumulator"])
+        env_bytes = ckpt["extra"].get("env")
+        if env_bytes is not None:
+            env.close()
+            env = pickle.loads(env_bytes)
+            obs = np.asarray(runner["obs"])
+        else:
+            obs, _ = env.reset(seed=t_cfg.seed + 1_000_003 * (1 + agent.steps))
+        log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
+    else:
+        obs, _ = env.reset(seed=t_cfg.seed)
+
+    writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=resume_step)
+    eval_env: gym.Env | None = None
+    progress = _Progress(t_cfg.total_steps, agent.steps, t_cfg.progress, f"{cfg.env.id} {replay_label(cfg.replay)}")
+    t0 = time.perf_counter()
+    log_t, log_step = t0, agent.steps
+    sps = math.nan
+    interrupted = False
+
+    def wall() -> float:
+        return wall_offset + time.perf_counter() - t0
+
+    def record_episode(info: dict[str, Any]) -> None:
+        nonlocal episode, last_return
+        ep = info["episode"]
+        ret, length = float(np.asarray(ep["r"])), int(np.asarray(ep["l"]))
+        episode += 1
+        last_return = ret
+        returns.append(ret)
+        writer.episode(episode, agent.steps, ret, length, wall())
+        if "event" in info:  # SUMO lane change: how the episode ended (for Table 3's rates)
+            event = info["event"]
+            writer.scalars(agent.steps, wall(), {"charts/episode_success": float(event == "success"),
+                                                 "charts/episode_collision": float(event == "collision")})  # fmt: skip
+        if on_episode is not None:
+            on_episode(episode, agent.steps, ret)
+
+    def checkpoint() -> Path:
+        extra = {
+            "runner": {
+                "episode": episode,
+                "returns": returns,
+                "wall_time": wall(),
+                "accumulator": acc.state_dict(),
+                "obs": np.array(obs, copy=True),
+            },
+            "env": _try_pickle_env(env),
+            "config": cfg.to_dict(),
+        }
+        writer.flush()
+        return agent.save(run_path / CHECKPOINT_NAME, extra=extra)
+
+    try:
+        with _StopFlag() as stop:
+            while agent.steps < t_cfg.total_steps:
+                action = agent.act(obs)
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+                metrics = agent.learn()
+                if metrics:
+                    acc.add(metrics)
+                if "episode" in info:
+                    record_episode(info)
+                if terminated or truncated:
+                    next_obs, reset_info = env.reset()
+                    if "episode" in reset_info:
+                        record_episode(reset_info)
+                obs = next_obs
+                step = agent.steps
+
+                if step % t_cfg.log_interval == 0:
+                    now = time.perf_counter()
+                    sps = (step - log_step) / max(now - log_t, 1e-9)
+                    log_t, log_step = now, step
+                    values = acc.pop_means()
+                    values["charts/steps_per_s"] = sps
+                    values["charts/epsilon"] = agent.epsilon
+                    values.update(agent.replay.stats())
+                    writer.scalars(step, wall(), values)
+                    progress.update(step, last_return, sps)
+                if t_cfg.eval_interval and step % t_cfg.eval_interval == 0:
+                    if eval_env is None:
+                        eval_env = make_env_from_config(cfg.env, t_cfg.seed + 10_000)
+                    score = evaluate(agent, eval_env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
+                    writer.scalars(step, wall(), {"charts/eval_return": score})
+                if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
+                    checkpoint()
+                if stop.stop:
+                    interrupted = True
+                    break
+    finally:
+        progress.close()
+
+    ckpt_path: Path | None = None
+    if interrupted or t_cfg.save_final_checkpoint:
+        ckpt_path = checkpoint()
+    writer.close()
+    env.close()
+    if eval_env is not None:
+        eval_env.close()
+
+    elapsed = wall()
+    summary = RunSummary(
+        run_dir=str(run_path),
+        steps=agent.steps,
+        episodes=episode,
+        interrupted=interrupted,
+        wall_time_s=elapsed,
+        steps_per_s=agent.steps / max(elapsed, 1e-9),
+        mean_return=float(np.mean(returns)) if returns else math.nan,
+        max_ma20_return=max_moving_average(returns, 20),
+        checkpoint=str(ckpt_path) if ckpt_path else None,
+    )
+    tmp = run_path / f".{SUMMARY_NAME}.tmp"
+    tmp.write_text(json.dumps(summary.__dict__, indent=2, default=float))
+    tmp.replace(run_path / SUMMARY_NAME)
+    if interrupted:
+        log.warning("interrupted at step %d; resume with --resume %s", agent.steps, ckpt_path)
+    return summary

@@ -1,0 +1,359 @@
+"""``bridge_node``: the SUMO lane-change simulation as a ROS 2 node (rclpy adapter).
+
+Owns one :class:`sumo_bridge.lane_change_env.LaneChangeEnv` and speaks the "ROS 2 graph
+contract" of docs/architecture.md: every step it publishes ``/clock``, ``reward`` (before
+``state``), ``state`` (PointCloud2 of the points), ``ego/odom`` and, on episode start/end,
+``episode``; it applies the actions arriving on ``lane_change_cmd``.
+
+Step keys: the bridge counts every published state with a global counter k (across episodes,
+reset states included) and stamps it t_k = k * step_seconds, so ``/clock`` is monotonic across
+episodes and every message of one step shares the stamp t_k.
+
+Modes
+-----
+``lockstep``
+    After publishing step k the bridge waits for the command stamped t_k. The command callback
+    steps the simulation directly (single-threaded executor, no polling timer); a one-shot
+    steady-clock timer fires after ``command_timeout`` seconds and steps with the default
+    action (0 = keep lane). Late and duplicate commands are rejected by
+    :class:`sumo_bridge.lockstep.CommandGate` and never applied to another step.
+``free_run``
+    A timer steps the simulation every ``step_seconds / real_time_factor`` wall seconds with
+    the latest valid command received since the previous step (default action if none).
+
+Bad input never stops the simulation: a rejected command is counted, logged (throttled) and
+reported on ``bridge/diagnostics`` (DiagnosticArray, also carrying the round-trip latency
+percentiles: state published -> its command received, measured here).
+
+``max_steps`` > 0: after that many simulation steps the node logs a one-line JSON summary
+(``bridge summary: {...}``) and exits 0.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Vector3Stamped
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock as RclClock
+from rclpy.clock import ClockType
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Joy, PointCloud2
+from std_msgs.msg import Header
+
+from der_ros.configuration import param
+from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes.params import ConfigParameters
+from der_ros.nodes.spin import run_node
+from sumo_bridge.lockstep import CommandGate, Verdict
+from sumo_bridge.observation import field_index
+
+__all__ = ["BridgeNodeConfig", "BridgeNode", "LatencyStats", "main", "parameter_sections", "qos_profiles"]
+
+_NS = 1_000_000_000
+
+
+@dataclass
+class BridgeNodeConfig:
+    """Parameters of the bridge node itself (top-level ROS parameter names)."""
+
+    mode: str = param("lockstep", "stepping mode: 'lockstep' (wait for each command) or 'free_run' (timer)",
+                      choices=("lockstep", "free_run"))
+    command_timeout: float = param(
+        2.0, "lockstep: seconds to wait for the command answering a state before applying the default action "
+        "(0 = keep lane); keep it above the agent's longest pause (checkpoint save), since the agent stores its own "
+        "action for a step the bridge closed with the default", low=0.0, low_inclusive=False)
+    real_time_factor: float = param(
+        1.0, "free_run: simulated seconds per wall-clock second", low=0.0, low_inclusive=False)
+    max_steps: int = param(0, "simulation steps before the node exits 0 (0 = unlimited)", low=0)
+    wait_for_agent: float = param(
+        30.0, "seconds to wait at start-up until state/reward have a subscriber and lane_change_cmd a publisher "
+        "(0 = start at once)", low=0.0)
+    min_subscribers: int = param(
+        1, "start-up: subscribers that state and reward must each have before the first step (der graph sets 2: "
+        "agent + recorder, so the bag starts with the first state)", low=1)
+    diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
+    map_frame: str = param("map", "frame_id of ego/odom")
+
+
+def qos_profiles() -> dict[str, QoSProfile]:
+    """The QoS of every topic of the graph contract (shared with the agent and recorder nodes)."""
+    reliable = ReliabilityPolicy.RELIABLE
+    return {
+        "clock": QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT),
+        "state": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+        "reward": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+        "episode": QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+        "lane_change_cmd": QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+        "ego/odom": qos_profile_sensor_data,
+        "agent/metrics": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+        "bridge/diagnostics": QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
+    }
+
+
+class LatencyStats:
+    """Round-trip times in a bounded ring (numpy), with percentiles in milliseconds."""
+
+    def __init__(self, capacity: int = 200_000) -> None:
+        self._buf = np.zeros(capacity, dtype=np.int64)
+        self._n = 0
+
+    def add(self, ns: int) -> None:
+        self._buf[self._n % len(self._buf)] = ns
+        self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, len(self._buf))
+
+    def percentiles_ms(self) -> dict[str, float]:
+        if len(self) == 0:
+            return {"roundtrip_p50_ms": float("nan"), "roundtrip_p99_ms": float("nan"), "roundtrip_n": 0.0}
+        data = self._buf[: len(self)] / 1e6
+        p50, p99 = np.percentile(data, [50, 99])
+        return {"roundtrip_p50_ms": float(p50), "roundtrip_p99_ms": float(p99), "roundtrip_n": float(len(self))}
+
+
+def parameter_sections() -> dict[str, Any]:
+    """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
+    from sumo_bridge.scenario import ScenarioConfig
+
+    return {"": BridgeNodeConfig(), "scenario": ScenarioConfig()}
+
+
+class BridgeNode(Node):
+    """rclpy adapter: LaneChangeEnv + CommandGate; see the module docstring."""
+
+    def __init__(self, env_factory: Any = None) -> None:
+        super().__init__("bridge_node")
+        self.finished = False
+        self._params = ConfigParameters(self, parameter_sections())
+        self.cfg: BridgeNodeConfig = self._params.get("")
+        self.scenario = self._params.get("scenario")
+        if env_factory is None:
+            from sumo_bridge.lane_change_env import LaneChangeEnv
+
+            env_factory = LaneChangeEnv
+        self.env = env_factory(self.scenario)
+        self.step_ns = int(round(float(self.env.step_seconds) * _NS))
+        self.n_actions = int(getattr(getattr(self.env, "action_space", None), "n", 3))
+        self.gate = CommandGate(n_actions=self.n_actions)
+        self._speed_col = field_index("speed")
+
+        q = qos_profiles()
+        self.pub_clock = self.create_publisher(Clock, "/clock", q["clock"])
+        self.pub_reward = self.create_publisher(Vector3Stamped, "reward", q["reward"])
+        self.pub_state = self.create_publisher(PointCloud2, "state", q["state"])
+        self.pub_odom = self.create_publisher(Odometry, "ego/odom", q["ego/odom"])
+        self.pub_episode = self.create_publisher(DiagnosticArray, "episode", q["episode"])
+        self.pub_diag = self.create_publisher(DiagnosticArray, "bridge/diagnostics", q["bridge/diagnostics"])
+        # Two-argument callback: rclpy passes the MessageInfo (timestamps, sequence numbers).
+        self.create_subscription(Joy, "lane_change_cmd", self._on_command, q["lane_change_cmd"])
+
+        steady = RclClock(clock_type=ClockType.STEADY_TIME)
+        self._timeout_timer = self.create_timer(self.cfg.command_timeout, self._on_timeout, clock=steady,
+                                                autostart=False)
+        self._run_timer = None
+        self._startup_timer = self.create_timer(0.05, self._maybe_start, clock=steady)
+        self._startup_deadline = time.monotonic() + self.cfg.wait_for_agent
+
+        self.k = 0  # global count of published states (the step key is k * step_ns)
+        self.sim_steps = 0
+        self.episode = -1
+        self._ep_return = 0.0
+        self._ep_steps = 0
+        self._ep_lane_changes = 0
+        self._ep_speed_sum = 0.0
+        self._lane: int | None = None
+        self._sent_at: dict[int, int] = {}
+        self.latency = LatencyStats()
+        self.events: dict[str, int] = {"success": 0, "collision": 0, "time_limit": 0}
+        self._t_start = time.perf_counter()
+        self._busy_s = 0.0
+        self.get_logger().info(
+            f"bridge ready: mode={self.cfg.mode} step={self.env.step_seconds}s scenario={self.scenario}"
+        )
+
+    # -- start-up --------------------------------------------------------------------------------
+    def _maybe_start(self) -> None:
+        ready = (
+            self.count_subscribers("state") >= self.cfg.min_subscribers
+            and self.count_subscribers("reward") >= self.cfg.min_subscribers
+            and self.count_publishers("lane_change_cmd") > 0
+        )
+        if not ready and time.monotonic() < self._startup_deadline:
+            return
+        self._startup_timer.cancel()
+        self.destroy_timer(self._startup_timer)
+        if not ready:
+            self.get_logger().warning("no agent found on the graph; starting anyway (default actions on timeout)")
+        self._t_start = time.perf_counter()
+        self._start_episode()
+        if self.cfg.mode == "free_run":
+            period = self.env.step_seconds / self.cfg.real_time_factor
+            self._run_timer = self.create_timer(period, self._on_tick, clock=RclClock(clock_type=ClockType.STEADY_TIME))
+
+    # -- stepping --------------------------------------------------------------------------------
+    def _stamp(self) -> int:
+        return self.k * self.step_ns
+
+    def _start_episode(self) -> None:
+        # The first reset without a seed uses scenario.seed; later resets continue the env's RNG.
+        _obs, info = self.env.reset()
+        self.episode += 1
+        self._ep_return = 0.0
+        self._ep_steps = 0
+        self._ep_lane_changes = 0
+        self._ep_speed_sum = 0.0
+        self._lane = info.get("lane")
+        stamp = self._stamp()
+        self.pub_episode.publish(mc.make_episode_event(stamp, "start", {"episode": self.episode, "steps": 0}))
+        self._publish_step(stamp, 0.0, False, False, info)
+
+    def _publish_step(self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict) -> None:
+        self.pub_clock.publish(mc.make_clock(stamp))
+        self.pub_reward.publish(mc.make_reward(stamp, reward, terminated, truncated))
+        if not (terminated or truncated):
+            self.gate.open(stamp)  # open before publishing: a fast answer must find the step open
+            self._sent_at[stamp] = time.perf_counter_ns()
+            if self.cfg.mode == "lockstep":
+                self._timeout_timer.reset()
+        self.pub_state.publish(mc.points_to_cloud(info["points"], stamp))
+        pos = info.get("position")
+        if pos is not None:
+            speed = float(info["points"][0, self._speed_col])
+            self.pub_odom.publish(
+                mc.make_odometry(stamp, pos[0], pos[1], float(info.get("angle", 0.0)), speed, self.cfg.map_frame)
+            )
+
+    def _step(self, action: int) -> None:
+        t0 = time.perf_counter()
+        _obs, reward, terminated, truncated, info = self.env.step(int(action))
+        self.sim_steps += 1
+        self.k += 1
+        stamp = self._stamp()
+        self._ep_return += float(reward)
+        self._ep_steps += 1
+        self._ep_speed_sum += float(info.get("mean_speed", info["points"][0, self._speed_col]))
+        lane = info.get("lane")
+        if lane is not None and self._lane is not None and lane != self._lane:
+            self._ep_lane_changes += 1
+        self._lane = lane
+        self._publish_step(stamp, float(reward), bool(terminated), bool(truncated), info)
+        done = self.cfg.max_steps > 0 and self.sim_steps >= self.cfg.max_steps
+        if terminated or truncated:
+            event = info.get("event") or ("time_limit" if truncated else "collision")
+            self.events[event] = self.events.get(event, 0) + 1
+            values = {
+                "episode": self.episode,
+                "steps": self._ep_steps,
+                "return": self._ep_return,
+                "lane_changes": self._ep_lane_changes,
+                "mean_speed": self._ep_speed_sum / max(self._ep_steps, 1),  # traffic mean speed over the episode
+            }
+            self.pub_episode.publish(mc.make_episode_event(stamp, event, values))
+            if not done:
+                self.k += 1
+                self._start_episode()
+        if self.sim_steps % self.cfg.diagnostics_every == 0:
+            self._publish_diagnostics()
+        self._busy_s += time.perf_counter() - t0
+        if done:
+            self._finish()
+
+    def _finish(self) -> None:
+        self._timeout_timer.cancel()
+        if self._run_timer is not None:
+            self._run_timer.cancel()
+        self.finished = True
+
+    # -- commands --------------------------------------------------------------------------------
+    def _on_command(self, msg: Joy, info: dict[str, Any]) -> None:
+        del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
+        if self.finished:
+            return
+        stamp, buttons, axes, sender = mc.parse_command(msg)
+        verdict, action = self.gate.offer(stamp, buttons, axes, sender)
+        if verdict is not Verdict.ACCEPTED:
+            self.get_logger().warning(
+                f"rejected lane_change_cmd ({verdict.value}): stamp={stamp} buttons={buttons} axes={axes} "
+                f"sender={sender!r}; counters={self.gate.stats()}",
+                throttle_duration_sec=1.0,
+            )
+            return
+        sent = self._sent_at.pop(stamp, None)
+        if sent is not None:
+            self.latency.add(time.perf_counter_ns() - sent)
+        if self.cfg.mode == "lockstep":
+            self._timeout_timer.cancel()
+            self._step(action)
+
+    def _on_timeout(self) -> None:
+        self._timeout_timer.cancel()
+        if self.finished or self.gate.open_key is None:
+            return
+        key = self.gate.open_key
+        self._sent_at.pop(key, None)
+        action = self.gate.expire()
+        self.get_logger().warning(
+            f"no command for step stamped {key} within {self.cfg.command_timeout}s: default action {action}",
+            throttle_duration_sec=1.0,
+        )
+        self._step(action)
+
+    def _on_tick(self) -> None:
+        if self.finished:
+            return
+        if self.gate.open_key is not None:
+            self._sent_at.pop(self.gate.open_key, None)
+        self._step(self.gate.take_latest())
+
+    # -- reporting -------------------------------------------------------------------------------
+    def summary(self) -> dict[str, float]:
+        """Counters, events, throughput and round-trip percentiles (also the exit log line)."""
+        wall = max(time.perf_counter() - self._t_start, 1e-9)
+        out: dict[str, float] = {
+            "sim_steps": float(self.sim_steps),
+            "published_states": float(self.k + 1),
+            "episodes_started": float(self.episode + 1),
+            "steps_per_s": self.sim_steps / wall,
+            "busy_fraction": self._busy_s / wall,
+        }
+        out.update({f"events/{k}": float(v) for k, v in self.events.items()})
+        out.update({f"commands/{k}": float(v) for k, v in self.gate.stats().items()})
+        out.update(self.latency.percentiles_ms())
+        return out
+
+    def _publish_diagnostics(self) -> None:
+        values = [KeyValue(key=k, value=repr(v)) for k, v in self.summary().items()]
+        level = DiagnosticStatus.OK
+        stats = self.gate.stats()
+        if any(stats[v.value] for v in Verdict if v is not Verdict.ACCEPTED):
+            level = DiagnosticStatus.WARN
+        status = DiagnosticStatus(level=level, name="bridge", message=self.cfg.mode, hardware_id="sumo", values=values)
+        self.pub_diag.publish(DiagnosticArray(header=Header(stamp=mc.ns_to_time(self._stamp())), status=[status]))
+
+    def on_shutdown(self, reason: str) -> None:
+        self._publish_diagnostics()
+        summary = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.summary().items()}
+        self.get_logger().info(f"stopping ({reason}); bridge summary: {json.dumps(summary, sort_keys=True)}")
+        try:
+            self.env.close()
+        except Exception as exc:  # closing SUMO must not hide the summary
+            self.get_logger().warning(f"env.close() failed: {exc}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``bridge_node`` (ROS arguments: ``--ros-args -p name:=value --params-file f``)."""
+    return run_node(BridgeNode, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+

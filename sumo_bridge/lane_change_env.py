@@ -1,0 +1,567 @@
+"""LaneChangeEnv: the paper's SUMO lane-change task (section 5.1) as a gymnasium environment.
+
+Task
+----
+SUMO drives speed, braking and steering of every vehicle; the agent decides only *when* to
+change lanes. The ego vehicle starts on ``ego_lane`` among background traffic and must reach
+``target_lane`` without a collision:
+
+* ``ring`` (``der_ros/LaneChangeRing-v0``): two concentric lanes on a ~377 m ring; the ego starts
+  on the outer lane (0) and must reach the inner lane (1). At every reset the background vehicles
+  (6-10 on the outer, 15-21 on the inner lane, 30% of a slower and longer type) are placed at
+  random, seeded positions; background vehicles keep SUMO's own lane-change model.
+* ``urban`` (``der_ros/LaneChangeUrban-v0``): a synthetic stand-in for the Yeongdong Bridge OSM
+  extract (see :mod:`sumo_bridge.network_build`); the ego is inserted on the northbound bridge's
+  right lane (0) and must reach the left lane (2), i.e. two lane changes.
+
+The ego's own lane-change model is off (``laneChangeMode 0``): a commanded change is executed
+in the next simulation step whether safe or not, so an unsafe change really collides.
+
+Actions (``Discrete(3)``)
+-------------------------
+0 keep lane, 1 change left (lane index + 1), 2 change right (lane index - 1). A direction with
+no lane is a no-op.
+
+Observation
+-----------
+``observation.encode_observation(info["points"], config.observation)``; see
+:mod:`sumo_bridge.observation` for the point layout (ego + leader/follower on the current, left
+and right lanes within 30 m, with present flags) and the normalisation.
+
+Reward (section 5.1)
+--------------------
+Every step: ``log(max(v_mean, min_speed))`` where ``v_mean`` is the mean speed (m/s) of all
+vehicles in the simulation at the end of the step (the floor keeps a standstill finite; with
+the default 0.1 m/s the per-step reward is >= -2.3). Plus ``reward_success`` (+100) when the
+episode ends in success and ``reward_collision`` (-100) when the agent causes a collision.
+
+Termination
+-----------
+* ``success`` (terminated): the ego has been on ``target_lane`` for ``settle_time`` seconds
+  without a collision.
+* ``collision`` (terminated): SUMO reports a collision with the ego as collider or victim. The
+  agent *caused* it (and gets ``reward_collision``) when it happens within ``collision_window``
+  seconds after the ego's own commanded lane change; otherwise (rare: SUMO's car following is
+  collision-free) the episode still terminates, without the penalty (``info["caused"]`` False).
+* ``time_limit`` (truncated): ``max_episode_steps`` steps passed, or the ego left the network
+  (urban: end of its route; the default time limit makes this impossible).
+
+Resets and determinism
+----------------------
+``reset(seed=s)`` seeds the placement/traffic RNG and SUMO's ``--seed`` (drawn from it), so the
+same seed gives the same trajectory. Ring resets reload the simulation in place with
+``load`` (a few ms, no new process). Urban resets keep the background traffic running and
+only replace the ego (a full ``load`` + ``urban_warmup_seconds`` happens on ``reset(seed=...)``
+and every ``urban_reload_every`` episodes), because filling a 1 km bridge takes ~100 simulated
+seconds.
+
+Neighbours come from one context subscription on the ego (lanes -1/0/+1, up- and downstream)
+per step; mean speed from one ID-list read per step.
+
+Only one libsumo simulation can live in a process (:mod:`sumo_bridge.sim_backend`): a second
+live env raises :class:`~sumo_bridge.sim_backend.SimulationInUseError`. Run parallel envs in
+subprocesses.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from sumo_bridge.network_build import BuiltNetwork, build_network
+from sumo_bridge.observation import (
+    POINT_FIELDS,
+    SLOT_NAMES,
+    empty_points,
+    encode_observation,
+    observation_space,
+)
+from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
+from sumo_bridge.sim_backend import SumoSimulation, constants
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "EVENTS", "ACTION_MEANINGS"]
+
+#: Possible values of ``info["event"]``.
+EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit")
+ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
+
+_C = {name: i for i, name in enumerate(POINT_FIELDS)}
+_SLOT = {name: i for i, name in enumerate(SLOT_NAMES)}
+#: lane offset (other - ego) -> (leader slot, follower slot)
+_LANE_SLOTS = {0: (_SLOT["leader"], _SLOT["follower"]), 1: (_SLOT["left_leader"], _SLOT["left_follower"]),
+               -1: (_SLOT["right_leader"], _SLOT["right_follower"])}  # fmt: skip
+
+_tc = constants()
+_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD = _tc.VAR_SPEED, _tc.VAR_LANE_INDEX, _tc.VAR_LANEPOSITION, _tc.VAR_ROAD_ID
+_V_POS, _V_ANGLE, _V_LENGTH = _tc.VAR_POSITION, _tc.VAR_ANGLE, _tc.VAR_LENGTH
+_V_DEPARTED, _V_COLLIDING = _tc.VAR_DEPARTED_VEHICLES_IDS, _tc.VAR_COLLIDING_VEHICLES_NUMBER
+_SPEED_ONLY = [_V_SPEED]
+_CTX_VARS = [_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD, _V_POS, _V_ANGLE, _V_LENGTH]
+# _points_from_context writes rows in this order
+assert POINT_FIELDS == ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot",
+                        "lane_count", "length")  # fmt: skip
+
+_RING_EDGES = ("bottom", "right", "top", "left")
+_URBAN_CORRIDOR = ("101", "102", "100", "103", "104")
+_INVALID_DISTANCE = 1e10
+
+
+class LaneChangeEnv(gym.Env):
+    """Gymnasium env of the section 5.1 lane-change task (see the module docstring)."""
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, config: ScenarioConfig | None = None, render_mode: str | None = None) -> None:
+        if render_mode is not None:
+            raise ValueError(f"render_mode = {render_mode!r}: use ScenarioConfig(gui=True) to watch in sumo-gui")
+        self.config = config if config is not None else ScenarioConfig.ring()
+        cfg = self.config
+        self.action_space = gym.spaces.Discrete(3)
+        self.observation_space = observation_space(cfg.observation)
+        self.step_seconds: float = cfg.step_seconds
+        self.ego_id = "ego"  # ring: always "ego"; urban: "ego.<n>", one per episode
+        self._ego_serial = 0
+        self.network: BuiltNetwork = build_network(cfg.network)
+        self._tc = constants()
+        self._sim: SumoSimulation | None = SumoSimulation(
+            self._sumo_args(cfg.seed), backend=cfg.backend, gui=cfg.gui, owner=f"LaneChangeEnv({cfg.network})"
+        )
+        self.api = self._sim.api
+        self._rng: np.random.Generator | None = None
+        self._ctx_range = cfg.observation.neighbour_range + 15.0
+        self._lane_counts: dict[str, int] = {}
+        self._offsets: dict[str, float] = {}
+        self._loop_length = 0.0
+        self._closed_corridor = cfg.network == "ring"
+        self._episodes_since_load = 0
+        self._need_load = True
+        self._ego_present = False
+        self._colliding = False
+        self._points = empty_points()
+        self._slot_ids: dict[str, str] = {}
+        self._ego_xy_angle = (0.0, 0.0, 0.0)
+        self._reset_episode_state()
+
+    # ------------------------------------------------------------------ helpers
+    def _sumo_args(self, seed: int) -> list[str]:
+        cfg = self.config
+        return [
+            "-n", str(self.network.net_file),
+            "-r", str(self.network.route_file),
+            "--step-length", repr(cfg.step_length),
+            "--seed", str(int(seed)),
+            "--collision.action", "warn",
+            "--collision.check-junctions", "true",
+            "--collision.mingap-factor", "0",
+            "--time-to-teleport", "-1",
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+            *cfg.sumo_args,
+        ]  # fmt: skip
+
+    def _reset_episode_state(self) -> None:
+        self._episode_step = 0
+        self._substep = 0
+        self._last_change_substep: int | None = None
+        self._on_target_since: int | None = None
+        self._lane_changes = 0
+        self._done = False
+
+    @property
+    def sim(self) -> SumoSimulation:
+        if self._sim is None or self._sim.closed:
+            raise RuntimeError("the environment is closed")
+        return self._sim
+
+    def _steps(self, seconds: float) -> int:
+        return int(round(seconds / self.config.step_length))
+
+    def _build_corridor(self) -> None:
+        """Longitudinal offsets of the roads the ego drives along (ring: the closed loop).
+
+        Positions on these roads (internal junction lanes included) map to one arc-length
+        coordinate, so gaps to vehicles on the next or previous edge need no extra query.
+        """
+        api = self.api
+        edges = _RING_EDGES if self.config.network == "ring" else _URBAN_CORRIDOR
+        seq = list(edges) + ([edges[0]] if self._closed_corridor else [])
+        offsets: dict[str, float] = {}
+        s = 0.0
+        for a, b in zip(seq[:-1], seq[1:]):
+            offsets[a] = s
+            s += api.lane.getLength(f"{a}_0")
+            via = ""
+            for k in range(self._lane_count(a)):  # the internal lane(s) of the junction from a to b
+                link = next((lk for lk in api.lane.getLinks(f"{a}_{k}") if lk[0].rsplit("_", 1)[0] == b), None)
+                if link is not None:
+                    via = link[4]
+                    break
+            while via and via.startswith(":"):
+                offsets.setdefault(api.lane.getEdgeID(via), s)
+                s += api.lane.getLength(via)
+                successors = api.lane.getLinks(via)
+                via = successors[0][0] if successors else ""
+        if not self._closed_corridor:
+            offsets[seq[-1]] = s
+            s += api.lane.getLength(f"{seq[-1]}_0")
+        self._offsets = offsets
+        self._loop_length = s
+
+    def _lane_count(self, road: str) -> int:
+        n = self._lane_counts.get(road)
+        if n is None:
+            n = int(self.api.edge.getLaneNumber(road))
+            self._lane_counts[road] = n
+        return n
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is not None or self._rng is None:
+            self._rng = np.random.default_rng(self.config.seed if seed is None else seed)
+            self._need_load = True
+        self._reset_episode_state()
+        if self.config.network == "ring":
+            self._reset_ring()
+        else:
+            self._reset_urban()
+        self._points = self._read_points()
+        info = self._info(event=None, mean_speed=self._mean_speed())
+        return encode_observation(self._points, self.config.observation), info
+
+    def _load(self) -> None:
+        assert self._rng is not None
+        sumo_seed = int(self._rng.integers(0, 2**31 - 1))
+        self.sim.load(self._sumo_args(sumo_seed))
+        # departures and collisions arrive with every step's answer (no extra round trip on traci)
+        self.api.simulation.subscribe([_V_DEPARTED, _V_COLLIDING])
+        self._ego_present = False
+        if not self._offsets:
+            self._build_corridor()
+        self._episodes_since_load = 0
+        self._need_load = False
+
+    def _reset_ring(self) -> None:
+        cfg, api, rng = self.config, self.api, self._rng
+        assert rng is not None
+        self._load()
+        lap = self._loop_length
+        normal = [(e, self._offsets[e], api.lane.getLength(f"{e}_0")) for e in _RING_EDGES]
+
+        def where(s: float) -> tuple[str, float]:
+            s %= lap
+            for edge, off, length in normal:
+                if off <= s < off + length:
+                    return edge, min(s - off, length - 0.1)
+            # inside a junction's internal lane: start of the next edge instead (shift < 0.3 m)
+            nxt = min(((off - s) % lap, edge) for edge, off, _ in normal)[1]
+            return nxt, 0.1
+
+        counts = (int(rng.integers(cfg.ring_outer_vehicles[0], cfg.ring_outer_vehicles[1] + 1)) + 1,
+                  int(rng.integers(cfg.ring_inner_vehicles[0], cfg.ring_inner_vehicles[1] + 1)))  # fmt: skip
+        for lane, n in enumerate(counts):
+            if n == 0:
+                continue
+            free = lap - n * cfg.min_spacing
+            u = np.sort(rng.uniform(0.0, free, n))
+            pos = u + np.arange(n) * cfg.min_spacing + rng.uniform(0.0, lap)
+            slow = rng.random(n) < cfg.slow_fraction
+            for i in range(n):
+                edge, p = where(float(pos[i]))
+                is_ego = lane == cfg.ego_lane and i == 0
+                vid = self.ego_id if is_ego else f"bg{lane}_{i}"
+                vtype = "ego" if is_ego else ("slow" if slow[i] else "car")
+                api.vehicle.add(vid, f"loop_{edge}", vtype, depart="now", departLane=str(lane),
+                                departPos=f"{p:.3f}", departSpeed="0")  # fmt: skip
+        api.vehicle.setLaneChangeMode(self.ego_id, 0)
+        self._warmup(cfg.warmup_seconds, min_steps=1)
+        self._subscribe_ego()
+
+    def _reset_urban(self) -> None:
+        cfg, api, rng = self.config, self.api, self._rng
+        assert rng is not None
+        if self._need_load or (cfg.urban_reload_every and self._episodes_since_load >= cfg.urban_reload_every):
+            self._load()
+            self._ego_serial = 0
+            self._warmup(cfg.urban_warmup_seconds)
+        elif self.ego_id in api.vehicle.getIDList():
+            # drop its subscriptions first: stepping with a subscription on a removed vehicle raises
+            api.vehicle.unsubscribeContext(self.ego_id, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range)
+            api.vehicle.unsubscribe(self.ego_id)
+            api.vehicle.remove(self.ego_id)
+            self._ego_present = False
+        self._episodes_since_load += 1
+        self._warmup(cfg.warmup_seconds)
+        for _attempt in range(20):
+            # a fresh id per attempt: SUMO 1.28 never inserts a vehicle re-added under the id of one
+            # removed before its insertion; unique ids also keep logs unambiguous
+            self._ego_serial += 1
+            self.ego_id = f"ego.{self._ego_serial}"
+            pos = self._urban_insert_pos()
+            api.vehicle.add(self.ego_id, "ego_route", "ego", depart="now", departLane=str(cfg.ego_lane),
+                            departPos=f"{pos:.3f}", departSpeed="max")  # fmt: skip
+            api.vehicle.setLaneChangeMode(self.ego_id, 0)
+            for _ in range(3):
+                self._sim_step()
+                if self.ego_id in api.vehicle.getIDList():
+                    self._subscribe_ego()
+                    return
+            api.vehicle.remove(self.ego_id)  # could not be inserted there (blocked): try elsewhere
+            self._sim_step()
+        raise RuntimeError("could not insert the ego vehicle on the bridge after 20 attempts (traffic too dense?)")
+
+    def _urban_insert_pos(self) -> float:
+        """A seeded position for the ego on the bridge: the middle of a random gap that fits it.
+
+        Dense lanes rarely leave room at a uniformly drawn position, so choose among the gaps
+        between the vehicles already on the start lane inside ``urban_depart_pos``.
+        """
+        cfg, api, rng = self.config, self.api, self._rng
+        assert rng is not None
+        lo, hi = cfg.urban_depart_pos
+        lane_id = f"{_URBAN_CORRIDOR[2]}_{cfg.ego_lane}"
+        ends = sorted(
+            (api.vehicle.getLanePosition(v), api.vehicle.getLength(v)) for v in api.lane.getLastStepVehicleIDs(lane_id)
+        )
+        fronts = [lo - 100.0] + [p for p, _ in ends] + [hi + 100.0]
+        backs = [lo - 100.0] + [p - length for p, length in ends] + [hi + 100.0]
+        need = 5.0 + 2 * 2.5 + 12.0  # ego length + min gaps + room for the follower to brake
+        gaps = [
+            (backs[i + 1] - fronts[i], 0.5 * (fronts[i] + backs[i + 1]) + 2.5)
+            for i in range(len(fronts) - 1)
+            if lo <= 0.5 * (fronts[i] + backs[i + 1]) <= hi
+        ]
+        fitting = [mid for size, mid in gaps if size >= need]
+        if fitting:
+            return float(fitting[int(rng.integers(len(fitting)))])
+        if gaps:  # dense lane: the largest gap is the best chance
+            return float(max(gaps)[1])
+        return float(rng.uniform(lo, hi))
+
+    def _warmup(self, seconds: float, min_steps: int = 0) -> None:
+        for _ in range(max(self._steps(seconds), min_steps)):
+            self._sim_step()
+
+    def _subscribe_ego(self) -> None:
+        tc, api = self._tc, self.api
+        api.vehicle.subscribeContext(
+            self.ego_id,
+            tc.CMD_GET_VEHICLE_VARIABLE,
+            self._ctx_range,
+            _CTX_VARS,
+        )
+        api.vehicle.addSubscriptionFilterLanes(
+            [-1, 0, 1], noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+        )
+        self._sim_step()  # fill the subscription (and let the ego settle one step)
+        self._ego_present = True
+
+    # ------------------------------------------------------------------ step
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._done:
+            raise RuntimeError("step() called after the episode ended; call reset()")
+        if action not in (0, 1, 2) or isinstance(action, bool):
+            raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
+        cfg, api = self.config, self.api
+        a = int(action)
+        ego = self._points[0]
+        if a != 0:
+            lane, n_lanes = int(ego[_C["lane"]]), int(ego[_C["lane_count"]])
+            new_lane = lane + 1 if a == 1 else lane - 1
+            if 0 <= new_lane < n_lanes:
+                api.vehicle.changeLane(self.ego_id, new_lane, self.step_seconds)
+                self._last_change_substep = self._substep
+                self._lane_changes += 1
+        collided = False
+        for _ in range(cfg.decision_interval):
+            self._sim_step()
+            self._substep += 1
+            if self._colliding:
+                for c in api.simulation.getCollisions():
+                    if self.ego_id in (c.collider, c.victim):
+                        collided = True
+                        break
+                if collided:
+                    break
+        self._episode_step += 1
+        ctx = api.vehicle.getContextSubscriptionResults(self.ego_id)
+        ego_gone = not ctx or self.ego_id not in ctx
+        if not ego_gone:
+            self._points = self._points_from_context(ctx)
+        mean_speed = self._mean_speed()
+        reward = math.log(max(mean_speed, cfg.min_speed))
+        terminated = truncated = False
+        event: str | None = None
+        caused = False
+        if collided:
+            terminated, event = True, "collision"
+            caused = self._last_change_substep is not None and (
+                (self._substep - self._last_change_substep) * cfg.step_length <= cfg.collision_window + 1e-9
+            )
+            if caused:
+                reward += cfg.reward_collision
+        elif not ego_gone and int(self._points[0, _C["lane"]]) == cfg.target_lane:
+            if self._on_target_since is None:
+                changed_now = self._last_change_substep is not None and self._last_change_substep >= self._substep - cfg.decision_interval
+                self._on_target_since = self._last_change_substep + 1 if changed_now else self._substep
+            if (self._substep - self._on_target_since) * cfg.step_length >= cfg.settle_time - 1e-9:
+                terminated, event = True, "success"
+                reward += cfg.reward_success
+        else:
+            self._on_target_since = None
+        if not terminated and (ego_gone or self._episode_step >= cfg.max_episode_steps):
+            truncated, event = True, "time_limit"
+        self._done = terminated or truncated
+        if ego_gone:
+            self._ego_present = False
+        info = self._info(event=event, mean_speed=mean_speed)
+        info["caused"] = caused
+        return encode_observation(self._points, cfg.observation), float(reward), terminated, truncated, info
+
+    # ------------------------------------------------------------------ state reading
+    def _sim_step(self) -> None:
+        """One SUMO step; every vehicle that departs gets a speed subscription (for the reward).
+
+        Departures and the collision count come from a simulation subscription made at load.
+
+        Reading all speeds through ``getAllSubscriptionResults`` is one call per env step, where
+        a getter per vehicle would be one call (one round trip on traci) per vehicle.
+        """
+        api = self.api
+        api.simulationStep()
+        sim = api.simulation.getSubscriptionResults()
+        for vid in sim[_V_DEPARTED]:
+            api.vehicle.subscribe(vid, _SPEED_ONLY)
+        self._colliding = sim[_V_COLLIDING] > 0
+
+    def _mean_speed(self) -> float:
+        """Mean speed (m/s) of all vehicles in the simulation (section 5.1 reward)."""
+        results = self.api.vehicle.getAllSubscriptionResults()
+        if not results:
+            return 0.0
+        # fsum: exact, so the result does not depend on the order the backend returns vehicles in
+        return math.fsum(r[_V_SPEED] for r in results.values()) / len(results)
+
+    def _read_points(self) -> np.ndarray:
+        ctx = self.api.vehicle.getContextSubscriptionResults(self.ego_id)
+        if not ctx or self.ego_id not in ctx:
+            raise RuntimeError(f"ego vehicle {self.ego_id!r} is not in the simulation after reset")
+        return self._points_from_context(ctx)
+
+    def _longitudinal(self, ego_road: str, ego_pos: float, road: str, pos: float) -> float | None:
+        """Signed front-to-front distance along the road (positive: ``road/pos`` is ahead)."""
+        off = self._offsets
+        if ego_road in off and road in off:
+            d = (off[road] + pos) - (off[ego_road] + ego_pos)
+            if self._closed_corridor:
+                half = 0.5 * self._loop_length
+                d = (d + half) % self._loop_length - half
+            return d
+        dist = self.api.simulation.getDistanceRoad
+        ahead = dist(ego_road, ego_pos, road, pos, True)
+        if 0.0 <= ahead < _INVALID_DISTANCE:
+            return ahead
+        behind = dist(road, pos, ego_road, ego_pos, True)
+        if 0.0 <= behind < _INVALID_DISTANCE:
+            return -behind
+        return None
+
+    def _points_from_context(self, ctx: dict[str, dict[int, Any]]) -> np.ndarray:
+        """The points (see :mod:`sumo_bridge.observation`) from one context-subscription result.
+
+        Built as Python lists and converted once: per-element numpy writes would cost more than
+        the simulation step itself at decision_interval=1.
+        """
+        cfg = self.config
+        ego = ctx[self.ego_id]
+        ego_road, ego_pos = ego[_V_ROAD], ego[_V_LANEPOS]
+        ego_lane, ego_speed, ego_len = ego[_V_LANE], ego[_V_SPEED], ego[_V_LENGTH]
+        ex, ey = ego[_V_POS]
+        heading = math.radians(ego[_V_ANGLE])
+        fx, fy = math.sin(heading), math.cos(heading)  # SUMO angle: degrees clockwise from north
+        n_lanes = self._lane_count(ego_road)
+        best: dict[int, tuple[float, str, dict[int, Any]]] = {}
+        rng_max = cfg.observation.neighbour_range
+        for vid, var in ctx.items():
+            if vid == self.ego_id:
+                continue
+            offset = var[_V_LANE] - ego_lane
+            if offset not in _LANE_SLOTS or (offset == 1 and ego_lane + 1 >= n_lanes) or (offset == -1 and ego_lane == 0):
+                continue
+            d = self._longitudinal(ego_road, ego_pos, var[_V_ROAD], var[_V_LANEPOS])
+            if d is None:
+                continue
+            if d > 0.0:
+                slot, gap = _LANE_SLOTS[offset][0], d - var[_V_LENGTH]
+            else:
+                slot, gap = _LANE_SLOTS[offset][1], -d - ego_len
+            if gap <= rng_max and (slot not in best or gap < best[slot][0]):
+                best[slot] = (gap, vid, var)
+        # rows in POINT_FIELDS order: x y z speed rel_speed gap lane target_lane present slot lane_count length
+        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target_lane, 1.0, 0.0, n_lanes, ego_len]]
+        for slot in range(len(SLOT_NAMES)):
+            hit = best.get(slot)
+            if hit is None:
+                rows.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, -1.0, 0.0, slot + 1.0, 0.0, 0.0])
+                continue
+            gap, _vid, var = hit
+            vx, vy = var[_V_POS]
+            dx, dy = vx - ex, vy - ey
+            speed = var[_V_SPEED]
+            rows.append([dx * fx + dy * fy, -dx * fy + dy * fx, 0.0, speed, speed - ego_speed, gap, var[_V_LANE],
+                         -1.0, 1.0, slot + 1.0, self._lane_count(var[_V_ROAD]), var[_V_LENGTH]])  # fmt: skip
+        self._slot_ids = {SLOT_NAMES[slot]: vid for slot, (_gap, vid, _var) in best.items()}
+        self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
+        return np.array(rows, dtype=np.float64)
+
+    def neighbour_ids(self) -> dict[str, str | None]:
+        """Vehicle id in each slot of the last points (for tests and debugging; not observed)."""
+        return {name: self._slot_ids.get(name) for name in SLOT_NAMES}
+
+    def _info(self, event: str | None, mean_speed: float) -> dict[str, Any]:
+        x, y, angle = self._ego_xy_angle
+        return {
+            "points": self._points.copy(),
+            "event": event,
+            "mean_speed": mean_speed,
+            "episode_step": self._episode_step,
+            "sim_time": self._substep * self.config.step_length,
+            "lane": int(self._points[0, _C["lane"]]),
+            "position": (x, y),
+            "angle": angle,
+            "lane_changes": self._lane_changes,
+        }
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        if self._sim is not None:
+            self._sim.close()
+            self._sim = None
+        super().close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def make_ring_env(config: ScenarioConfig | dict[str, Any] | None = None, scenario: dict[str, Any] | None = None,
+                  render_mode: str | None = None, **overrides: Any) -> LaneChangeEnv:  # fmt: skip
+    """Entry point of ``der_ros/LaneChangeRing-v0``: ``gym.make(id, scenario={...})`` or field overrides."""
+    return LaneChangeEnv(scenario_from_kwargs("ring", config if config is not None else scenario, **overrides),
+                         render_mode=render_mode)  # fmt: skip
+
+
+def make_urban_env(config: ScenarioConfig | dict[str, Any] | None = None, scenario: dict[str, Any] | None = None,
+                   render_mode: str | None = None, **overrides: Any) -> LaneChangeEnv:  # fmt: skip
+    """Entry point of ``der_ros/LaneChangeUrban-v0`` (same keyword arguments as the ring)."""
+    return LaneChangeEnv(scenario_from_kwargs("urban", config if config is not None else scenario, **overrides),
+                         render_mode=render_mode)  # fmt: skip

@@ -1,0 +1,191 @@
+"""Point layout of the lane-change state and the observation vector built from it.
+
+This module is the one contract shared by the SUMO environment, the ROS bridge node and the
+agent node (docs/architecture.md, "SUMO environment" and the ``state`` topic). It imports
+neither SUMO nor ROS.
+
+Points (``info["points"]``, published as a PointCloud2 with FLOAT64 fields)
+----------------------------------------------------------------------------
+A float64 array of shape ``(1 + len(SLOT_NAMES), len(POINT_FIELDS))``. Row 0 is the ego
+(RL-controlled) vehicle, row ``1 + i`` is neighbour slot ``SLOT_NAMES[i]``. Columns:
+
+``x, y, z``
+    Position relative to the ego in the ego frame (metres; x forward along the ego's heading,
+    y to its left, z up). Row 0 is (0, 0, 0).
+``speed``
+    Absolute speed (m/s).
+``rel_speed``
+    ``speed - ego speed`` (m/s); 0 in row 0.
+``gap``
+    Bumper-to-bumper longitudinal gap along the road (metres): for a leader the distance from
+    the ego's front bumper to the leader's rear bumper, for a follower from the follower's
+    front bumper to the ego's rear bumper. Negative means the two vehicles overlap
+    longitudinally (a lane change now would collide). 0 in row 0.
+``lane``
+    Lane index of the vehicle (SUMO: 0 = rightmost lane of the edge).
+``target_lane``
+    Row 0: the lane index the ego must reach (section 5.1: the inner ring lane). -1 in
+    neighbour rows.
+``present``
+    1 if the row holds a vehicle, 0 for an empty slot (no such neighbour within the
+    neighbour range). Empty rows are all zeros except ``slot``, ``lane = -1`` and
+    ``target_lane = -1``.
+``slot``
+    0 for the ego, ``1 + i`` for ``SLOT_NAMES[i]``.
+``lane_count``
+    Number of lanes of the edge the vehicle is on (row 0 decides whether "left"/"right" exist).
+``length``
+    Vehicle length (metres).
+
+Neighbour slots follow SUMO's own definitions (``vehicle.getLeader``, ``getFollower``,
+``getLeftLeaders``, ``getLeftFollowers``, ``getRightLeaders``, ``getRightFollowers``): the
+nearest vehicle ahead / behind on the ego's lane and on the lanes directly to its left and
+right, within ``ObservationConfig.neighbour_range`` metres of gap (the paper's 30 m, section
+5.1). "Left" is the higher lane index (SUMO counts lanes from the right).
+
+Observation vector (``encode_observation``)
+-------------------------------------------
+float32, shape ``(EGO_FEATURES + 3 * len(SLOT_NAMES),)``, every entry in [-1, 1]:
+
+* ego: ``speed / speed_scale`` (clipped to [0, 1]); ``lane / (max_lanes - 1)``;
+  ``clip(target_lane - lane, -1, 1)`` (which way the target lies, 0 once on it);
+  ``has_left_lane`` (0/1); ``has_right_lane`` (0/1);
+* per slot, in ``SLOT_NAMES`` order: ``present`` (0/1); ``gap / neighbour_range`` clipped to
+  [-1, 1] (an empty slot reads 1.0, "free up to the range"); ``rel_speed / speed_scale``
+  clipped to [-1, 1] (0.0 for an empty slot).
+
+The present flag keeps "empty" distinguishable from "a vehicle exactly at the range".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from der_ros.configuration import ConfigError, param
+
+__all__ = [
+    "POINT_FIELDS",
+    "SLOT_NAMES",
+    "EGO_FEATURES",
+    "SLOT_FEATURES",
+    "ObservationConfig",
+    "field_index",
+    "empty_points",
+    "encode_observation",
+    "observation_size",
+    "observation_space",
+]
+
+#: Column names of ``info["points"]`` (and FLOAT64 fields of the ``state`` PointCloud2), in order.
+POINT_FIELDS: tuple[str, ...] = (
+    "x",
+    "y",
+    "z",
+    "speed",
+    "rel_speed",
+    "gap",
+    "lane",
+    "target_lane",
+    "present",
+    "slot",
+    "lane_count",
+    "length",
+)
+
+#: Neighbour slots (rows 1.. of the points), in order.
+SLOT_NAMES: tuple[str, ...] = (
+    "leader",
+    "follower",
+    "left_leader",
+    "left_follower",
+    "right_leader",
+    "right_follower",
+)
+
+#: Names of the ego part of the observation vector.
+EGO_FEATURES: tuple[str, ...] = ("speed", "lane", "target_direction", "has_left_lane", "has_right_lane")
+#: Names of the per-slot part of the observation vector.
+SLOT_FEATURES: tuple[str, ...] = ("present", "gap", "rel_speed")
+
+_COL = {name: i for i, name in enumerate(POINT_FIELDS)}
+_SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
+_TARGET, _PRESENT, _LANES = _COL["target_lane"], _COL["present"], _COL["lane_count"]
+
+
+def field_index(name: str) -> int:
+    """Column index of a point field (``KeyError`` names the valid fields)."""
+    try:
+        return _COL[name]
+    except KeyError:
+        raise KeyError(f"unknown point field {name!r}; fields are {', '.join(POINT_FIELDS)}") from None
+
+
+@dataclass
+class ObservationConfig:
+    """How points are normalised into the observation vector (section 5.1: 30 m neighbourhood)."""
+
+    neighbour_range: float = param(
+        30.0, "neighbour range in metres: neighbours farther than this gap are not observed (paper: 30 m)", low=1.0
+    )
+    speed_scale: float = param(20.0, "speed (m/s) that maps to 1.0 in the observation", low=0.1)
+    max_lanes: int = param(3, "largest lane count of the network, for normalising the lane index", low=2, high=16)
+
+    def check(self) -> None:
+        if not np.isfinite(self.neighbour_range):
+            raise ConfigError(f"neighbour_range = {self.neighbour_range!r}, expected a finite number")
+
+
+def empty_points() -> np.ndarray:
+    """Points with every neighbour slot empty (row 0 zeroed; the caller fills the ego)."""
+    pts = np.zeros((1 + len(SLOT_NAMES), len(POINT_FIELDS)), dtype=np.float64)
+    pts[:, _COL["slot"]] = np.arange(1 + len(SLOT_NAMES), dtype=np.float64)
+    pts[1:, _COL["lane"]] = -1.0
+    pts[1:, _COL["target_lane"]] = -1.0
+    pts[0, _COL["present"]] = 1.0
+    return pts
+
+
+def observation_size() -> int:
+    """Length of the observation vector."""
+    return len(EGO_FEATURES) + len(SLOT_FEATURES) * len(SLOT_NAMES)
+
+
+def observation_space(cfg: ObservationConfig) -> gym.spaces.Box:
+    """The gymnasium space of :func:`encode_observation`'s output (every entry in [-1, 1])."""
+    del cfg  # the shape and bounds do not depend on the scales
+    n = observation_size()
+    return gym.spaces.Box(low=-1.0, high=1.0, shape=(n,), dtype=np.float32)
+
+
+def encode_observation(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
+    """The float32 observation vector of a points array (see the module docstring).
+
+    Pure and deterministic, so the env (in process) and the agent node (after a PointCloud2
+    round trip of the float64 points) compute bit-identical observations.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    expected = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
+    if pts.shape != expected:
+        raise ValueError(f"points have shape {pts.shape}, expected {expected} (rows: ego + {SLOT_NAMES})")
+    # Plain float arithmetic on a list: ~3x faster than numpy ops on arrays this small, and
+    # every operation is IEEE-exact the same way in the env and in the agent node.
+    rows = pts.tolist()
+    ego = rows[0]
+    lane = ego[_LANE]
+    speed_scale, rng = cfg.speed_scale, cfg.neighbour_range
+    out = [
+        min(max(ego[_SPEED] / speed_scale, 0.0), 1.0),
+        min(max(lane / (cfg.max_lanes - 1), 0.0), 1.0),
+        min(max(ego[_TARGET] - lane, -1.0), 1.0),
+        1.0 if lane < ego[_LANES] - 1 else 0.0,
+        1.0 if lane > 0 else 0.0,
+    ]
+    for row in rows[1:]:
+        if row[_PRESENT] > 0.5:
+            out += (1.0, min(max(row[_GAP] / rng, -1.0), 1.0), min(max(row[_REL] / speed_scale, -1.0), 1.0))
+        else:
+            out += (0.0, 1.0, 0.0)
+    return np.array(out, dtype=np.float32)

@@ -1,0 +1,172 @@
+"""ScenarioConfig: everything that defines one lane-change scenario (paper section 5.1).
+
+One dataclass for both networks; :func:`ScenarioConfig.ring` and :func:`ScenarioConfig.urban`
+give the defaults of the two registered environments. Every field is declared with
+:func:`der_ros.configuration.param`, so YAML files (``config/ring.yaml``, ``config/urban.yaml``),
+CLI flags and ROS parameters share the same checks; a bad value raises
+:class:`~der_ros.configuration.ConfigError` naming the field and the value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from der_ros.configuration import ConfigError, from_dict, param, to_dict, validate
+from sumo_bridge.network_build import NETWORK_NAMES
+from sumo_bridge.observation import ObservationConfig
+
+__all__ = ["ScenarioConfig", "scenario_from_kwargs"]
+
+
+@dataclass
+class ScenarioConfig:
+    """A SUMO lane-change scenario: network, traffic, timing, reward and observation."""
+
+    network: str = param("ring", "which network: 'ring' (two concentric lanes) or 'urban' (bridge)", choices=NETWORK_NAMES)
+    backend: str = param(
+        "libsumo", "'libsumo' (in process, fast, one per process) or 'traci' (sumo subprocess)", choices=("libsumo", "traci")
+    )
+    gui: bool = param(False, "run sumo-gui (implies the traci backend)")
+    seed: int = param(0, "seed used when reset() is first called without a seed", low=0, high=2**31 - 1)
+    step_length: float = param(0.1, "SUMO simulation step in seconds", low=0.001, high=5.0)
+    decision_interval: int = param(5, "simulation steps per environment step (one lane-change decision)", low=1, high=1000)
+    max_episode_steps: int = param(
+        40, "environment steps before the episode is truncated (event 'time_limit')", low=1, high=1_000_000
+    )
+    warmup_seconds: float = param(
+        5.0,
+        "simulated seconds before the first observation (ring: after placing the vehicles at standstill, so "
+        "traffic gets moving; urban: between two egos)",
+        low=0.0,
+    )
+    ego_lane: int = param(0, "lane index the ego starts on (SUMO: 0 = rightmost; ring: 0 = outer lane)", low=0)
+    target_lane: int = param(1, "lane index the ego must reach (ring: 1 = inner lane)", low=0)
+    ring_outer_vehicles: tuple[int, ...] = param(
+        (6, 10), "ring: [min, max] background vehicles placed on the outer lane (lane 0) at reset", low=0
+    )
+    ring_inner_vehicles: tuple[int, ...] = param(
+        (15, 21), "ring: [min, max] background vehicles placed on the inner lane (lane 1) at reset", low=0
+    )
+    slow_fraction: float = param(
+        0.3, "ring: fraction of background vehicles of the slower, longer 'slow' type (varied traffic)", low=0.0, high=1.0
+    )
+    min_spacing: float = param(
+        10.0, "ring: smallest front-to-front distance between vehicles placed on one lane (m)", low=8.0
+    )
+    urban_depart_pos: tuple[float, ...] = param(
+        (40.0, 400.0), "urban: [min, max] position (m) along the bridge where the ego is inserted", low=0.0
+    )
+    urban_warmup_seconds: float = param(
+        150.0, "urban: simulated seconds of background traffic after a full load, before the first ego", low=0.0
+    )
+    urban_reload_every: int = param(
+        100,
+        "urban: episodes between full reloads of the simulation (between them the background traffic keeps "
+        "running and only the ego is replaced); 0 = reload only on reset(seed=...)",
+        low=0,
+    )
+    reward_success: float = param(100.0, "reward for reaching the target lane (paper: +100)")
+    reward_collision: float = param(-100.0, "reward when the agent causes a collision (paper: -100)")
+    min_speed: float = param(
+        0.1,
+        "speed floor (m/s) in the per-step reward log(max(mean speed, min_speed)), so a standstill gives a "
+        "finite reward",
+        low=1e-6,
+        low_inclusive=True,
+    )
+    collision_window: float = param(
+        3.0,
+        "seconds after the ego's own lane change during which a collision involving the ego (as collider or "
+        "victim) counts as caused by the agent (reward_collision)",
+        low=0.0,
+    )
+    settle_time: float = param(
+        0.5, "seconds the ego must stay on the target lane without a collision before 'success'", low=0.0
+    )
+    sumo_args: tuple[str, ...] = param((), "extra command-line arguments for sumo (e.g. ['--lateral-resolution', '0.8'])")
+    observation: ObservationConfig = param(
+        default_factory=ObservationConfig, help="normalisation of the observation (sumo_bridge.observation)"
+    )
+
+    @property
+    def step_seconds(self) -> float:
+        """Simulated seconds per environment step."""
+        return self.step_length * self.decision_interval
+
+    def check(self) -> None:
+        for name in ("ring_outer_vehicles", "ring_inner_vehicles", "urban_depart_pos"):
+            value = getattr(self, name)
+            if len(value) != 2 or value[0] > value[1]:
+                raise ConfigError(f"{name} = {list(value)!r}, expected [min, max] with min <= max")
+        max_lanes = 2 if self.network == "ring" else 3
+        for name in ("ego_lane", "target_lane"):
+            value = getattr(self, name)
+            if value >= max_lanes:
+                raise ConfigError(f"{name} = {value!r}, expected a lane index below {max_lanes} on the {self.network} network")
+        if self.ego_lane == self.target_lane:
+            raise ConfigError(f"target_lane = {self.target_lane!r}, expected a lane other than ego_lane ({self.ego_lane})")
+        if self.network == "ring":
+            lap = 376.9
+            for name in ("ring_outer_vehicles", "ring_inner_vehicles"):
+                most = getattr(self, name)[1] + (1 if name == "ring_outer_vehicles" else 0)
+                if most * self.min_spacing > lap:
+                    raise ConfigError(
+                        f"{name} = {list(getattr(self, name))!r}, expected at most {int(lap // self.min_spacing)} "
+                        f"vehicles per lane with min_spacing {self.min_spacing} m on a {lap} m lap"
+                    )
+        if self.observation.max_lanes < max_lanes:
+            raise ConfigError(
+                f"observation.max_lanes = {self.observation.max_lanes!r}, expected >= {max_lanes} for the {self.network} network"
+            )
+
+    @classmethod
+    def ring(cls, **overrides: Any) -> ScenarioConfig:
+        """Defaults of ``der_ros/LaneChangeRing-v0`` (validated; overrides by field name)."""
+        return from_dict(cls, {"network": "ring", **overrides}, source="ring scenario")
+
+    @classmethod
+    def urban(cls, **overrides: Any) -> ScenarioConfig:
+        """Defaults of ``der_ros/LaneChangeUrban-v0``: start on the bridge's right lane, reach the left one."""
+        base = {
+            "network": "urban",
+            "ego_lane": 0,
+            "target_lane": 2,
+            "max_episode_steps": 40,
+            "warmup_seconds": 1.0,
+        }
+        return from_dict(cls, {**base, **overrides}, source="urban scenario")
+
+
+def scenario_from_kwargs(
+    network: str, config: ScenarioConfig | dict[str, Any] | None = None, **overrides: Any
+) -> ScenarioConfig:
+    """Build a validated config from ``gymnasium.make`` keyword arguments.
+
+    Accepts a ready :class:`ScenarioConfig`, a ``scenario``-style mapping, and/or field
+    overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``).
+    """
+    preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
+    if isinstance(config, ScenarioConfig):
+        data = to_dict(config)
+    elif config is None:
+        data = to_dict(preset())
+    elif isinstance(config, dict):
+        data = to_dict(preset(**{k: v for k, v in config.items() if k != "network"}))
+        if "network" in config and config["network"] != network:
+            raise ConfigError(f"scenario: network = {config['network']!r}, expected {network!r} for this environment id")
+    else:
+        raise ConfigError(f"scenario = {config!r}, expected a mapping of ScenarioConfig fields")
+    if "network" in overrides and overrides["network"] != network:
+        raise ConfigError(f"scenario: network = {overrides['network']!r}, expected {network!r} for this environment id")
+    obs_override = overrides.pop("observation", None)
+    data.update(overrides)
+    if obs_override is not None:
+        if not isinstance(obs_override, (dict, ObservationConfig)):
+            raise ConfigError(f"scenario: observation = {obs_override!r}, expected a mapping")
+        obs = to_dict(obs_override) if isinstance(obs_override, ObservationConfig) else obs_override
+        data["observation"] = {**data["observation"], **obs}
+    cfg = from_dict(ScenarioConfig, data, source="scenario")
+    return validate(dataclasses.replace(cfg), source="scenario")
+

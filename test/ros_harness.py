@@ -1,0 +1,346 @@
+"""Harness for node tests: real node processes plus an rclpy node inside the test process.
+
+Isolation: every test gets its own ``ROS_DOMAIN_ID`` (1..101, reserved with a lock file so that
+concurrent pytest runs on the same machine never share one), discovery is limited to this host
+(``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``), node output goes to files that are printed on
+failure (pytest shows a failing test's captured teardown output), and every process is stopped
+(SIGINT, then SIGKILL after a grace period) and reaped in teardown.
+
+Usage (fixtures ``ros_graph`` / ``ros_domain`` are exported for ``from ros_harness import *``)::
+
+    def test_x(ros_graph):
+        bridge = ros_graph.start_node("sumo_bridge.bridge_node", params={"max_steps": 50})
+        states = ros_graph.probe.collect("state", PointCloud2)
+        wait_for(lambda: len(states) >= 3, timeout=20, what="three states", procs=[bridge])
+
+Generic API: :func:`start_node`, :class:`NodeProcess`, :class:`ProbeNode`, :func:`wait_for`,
+:func:`reserve_domain_id`.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+__all__ = [
+    "NodeProcess",
+    "ProbeNode",
+    "RosGraph",
+    "reserve_domain_id",
+    "start_node",
+    "wait_for",
+    "ros_domain",
+    "ros_graph",
+]
+
+REPO = Path(__file__).resolve().parents[1]
+_LOCK_DIR = Path(tempfile.gettempdir()) / "der_ros_test_domains"
+
+
+# -- domain ids ---------------------------------------------------------------------------------
+class DomainLease:
+    """A ROS domain id held through an exclusive lock file until :meth:`release`."""
+
+    def __init__(self, domain_id: int, fd: int) -> None:
+        self.domain_id = domain_id
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd >= 0:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = -1
+
+
+def reserve_domain_id(low: int = 1, high: int = 101) -> DomainLease:
+    """Lock a free domain id in [low, high], starting from one derived from the pid."""
+    _LOCK_DIR.mkdir(exist_ok=True)
+    span = high - low + 1
+    start = os.getpid() % span
+    for i in range(span):
+        did = low + (start + i) % span
+        fd = os.open(_LOCK_DIR / f"{did}.lock", os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        return DomainLease(did, fd)
+    raise RuntimeError(f"no free ROS domain id in {low}..{high}")
+
+
+# -- waiting ------------------------------------------------------------------------------------
+def wait_for(
+    predicate: Callable[[], Any],
+    timeout: float,
+    what: str = "condition",
+    interval: float = 0.01,
+    procs: Iterable[NodeProcess] = (),
+) -> Any:
+    """Poll ``predicate`` until it returns a truthy value (returned) or fail the test.
+
+    Fails early, with the process output, if one of ``procs`` exits meanwhile.
+    """
+    deadline = time.monotonic() + timeout
+    procs = list(procs)
+    while True:
+        value = predicate()
+        if value:
+            return value
+        for p in procs:
+            if p.poll() is not None:
+                pytest.fail(f"{p.name} exited with {p.poll()} while waiting for {what}:\n{p.output()[-4000:]}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
+# -- node processes -----------------------------------------------------------------------------
+class NodeProcess:
+    """A node running in its own process (own session, so signals reach only it)."""
+
+    def __init__(self, name: str, argv: list[str], env: Mapping[str, str], log_path: Path) -> None:
+        self.name = name
+        self.argv = argv
+        self.log_path = log_path
+        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(
+            argv, env=dict(env), stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True, cwd=REPO,
+        )
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def output(self) -> str:
+        """Everything the process wrote so far (stdout and stderr)."""
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def signal(self, sig: int) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, sig)
+
+    def wait(self, timeout: float) -> int:
+        """Wait for exit; returns the exit code (raises subprocess.TimeoutExpired)."""
+        return self.proc.wait(timeout=timeout)
+
+    def stop(self, grace: float = 10.0) -> int:
+        """SIGINT, then SIGKILL (whole session) after ``grace`` seconds; reaps; returns the exit code."""
+        if self.proc.poll() is None:
+            self.signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=grace)
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                self.proc.wait(timeout=10)
+        if not self._log.closed:
+            self._log.close()
+        return self.proc.returncode
+
+
+def _param_arg(name: str, value: Any) -> str:
+    text = yaml.safe_dump(value, default_flow_style=True).strip()
+    if text.endswith("\n..."):
+        text = text[: -len("\n...")]
+    text = text.removesuffix("...").strip()
+    return f"{name}:={text}"
+
+
+def start_node(
+    executable_module: str,
+    params_file: str | Path | None = None,
+    params: Mapping[str, Any] | None = None,
+    name: str | None = None,
+    *,
+    domain_id: int,
+    log_dir: Path,
+    env: Mapping[str, str] | None = None,
+    extra_ros_args: Iterable[str] = (),
+) -> NodeProcess:
+    """Start ``python -m executable_module --ros-args ...`` in the given domain.
+
+    ``params`` become ``-p name:=value`` (values YAML-encoded, so lists and floats keep their
+    type); ``name`` remaps the node name (``-r __node:=name``) and names the log file.
+    """
+    label = name or executable_module.rsplit(".", 1)[-1]
+    argv = [sys.executable, "-m", executable_module, "--ros-args"]
+    if name:
+        argv += ["-r", f"__node:={name}"]
+    if params_file is not None:
+        argv += ["--params-file", str(params_file)]
+    for k, v in (params or {}).items():
+        argv += ["-p", _param_arg(k, v)]
+    argv += list(extra_ros_args)
+    full_env = dict(os.environ)
+    full_env.update(
+        {
+            "ROS_DOMAIN_ID": str(domain_id),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "PYTHONUNBUFFERED": "1",
+            "OMP_NUM_THREADS": "1",
+            "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
+        }
+    )
+    full_env.update(env or {})
+    log_path = log_dir / f"{label}-{int(time.time() * 1000) % 10_000_000}.log"
+    return NodeProcess(label, argv, full_env, log_path)
+
+
+# -- in-test rclpy node -------------------------------------------------------------------------
+class ProbeNode:
+    """An rclpy node in the test process, spinning in a background thread, in its own Context."""
+
+    def __init__(self, domain_id: int, name: str = "test_probe") -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = Node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self._thread = threading.Thread(target=self._spin, name="probe-spin", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.05)
+        except (ExternalShutdownException, Exception):  # shutting down in teardown
+            pass
+
+    def collect(self, topic: str, msg_type: type, qos: Any = 100, with_info: bool = False) -> list[Any]:
+        """Subscribe; returns the list the messages (or (msg, info, t_recv) tuples) are appended to."""
+        out: list[Any] = []
+        if with_info:
+            self.node.create_subscription(msg_type, topic, lambda m, i: out.append((m, i, time.monotonic())), qos)
+        else:
+            self.node.create_subscription(msg_type, topic, out.append, qos)
+        return out
+
+    def publisher(self, topic: str, msg_type: type, qos: Any = 10) -> Any:
+        return self.node.create_publisher(msg_type, topic, qos)
+
+    def call(self, srv_type: type, name: str, request: Any, timeout: float = 10.0) -> Any:
+        """Call a service and wait for the response (fails the test on timeout)."""
+        client = self.node.create_client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                pytest.fail(f"service {name} not available after {timeout} s")
+            future = client.call_async(request)
+            wait_for(future.done, timeout, what=f"response of {name}")
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def set_parameters(self, node_name: str, values: Mapping[str, Any], timeout: float = 10.0) -> list[Any]:
+        """Call ``/<node>/set_parameters``; returns the list of SetParametersResult."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+        return list(self.call(SetParameters, f"/{node_name}/set_parameters", req, timeout).results)
+
+    def get_parameters(self, node_name: str, names: list[str], timeout: float = 10.0) -> dict[str, Any]:
+        """Call ``/<node>/get_parameters``; returns name -> Python value."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        res = self.call(GetParameters, f"/{node_name}/get_parameters", GetParameters.Request(names=names), timeout)
+        return {n: parameter_value_to_python(v) for n, v in zip(names, res.values)}
+
+    def close(self) -> None:
+        import rclpy
+
+        try:
+            rclpy.shutdown(context=self.context)
+        except Exception:  # already shut down
+            pass
+        self._thread.join(timeout=5)
+        self.executor.shutdown(timeout_sec=1)
+        self.node.destroy_node()
+
+
+class RosGraph:
+    """Per-test bundle: a domain id, started node processes, a probe node; cleaned up in teardown."""
+
+    def __init__(self, domain_id: int, log_dir: Path) -> None:
+        self.domain_id = domain_id
+        self.log_dir = log_dir
+        self.procs: list[NodeProcess] = []
+        self._probe: ProbeNode | None = None
+
+    @property
+    def probe(self) -> ProbeNode:
+        if self._probe is None:
+            self._probe = ProbeNode(self.domain_id)
+        return self._probe
+
+    def start_node(
+        self,
+        executable_module: str,
+        params_file: str | Path | None = None,
+        params: Mapping[str, Any] | None = None,
+        name: str | None = None,
+        **kwargs: Any,
+    ) -> NodeProcess:
+        p = start_node(
+            executable_module, params_file, params, name, domain_id=self.domain_id, log_dir=self.log_dir, **kwargs
+        )
+        self.procs.append(p)
+        return p
+
+    def close(self) -> None:
+        for p in self.procs:
+            code = p.stop()
+            print(f"===== {p.name} (pid {p.pid}, exit {code}) {' '.join(p.argv[2:])}\n{p.output()[-20000:]}")
+        if self._probe is not None:
+            self._probe.close()
+
+
+@pytest.fixture
+def ros_domain() -> Any:
+    """A reserved ROS domain id for this test."""
+    lease = reserve_domain_id()
+    try:
+        yield lease.domain_id
+    finally:
+        lease.release()
+
+
+@pytest.fixture
+def ros_graph(ros_domain: int, tmp_path: Path) -> Any:
+    """A :class:`RosGraph` in this test's domain; all processes stopped and reaped afterwards."""
+    graph = RosGraph(ros_domain, tmp_path)
+    try:
+        yield graph
+    finally:
+        graph.close()

@@ -1,0 +1,171 @@
+"""``der graph`` end to end: bridge + agent + recorder as processes, the bag, Ctrl-C, a dying node."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from ros_harness import *  # noqa: F403 - ros_domain fixture
+from rosbags.rosbag2 import Reader
+
+from der_ros.bag.writer import FINALIZED_KEY, jazzy_typestore, read_episode_summary
+
+REPO = Path(__file__).resolve().parents[1]
+TS = jazzy_typestore()
+
+
+def der_graph(run_dir: Path, domain: int, *extra: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+    return subprocess.Popen(
+        [sys.executable, "-m", "der_ros.cli", "graph", "--run-dir", str(run_dir), "--domain-id", str(domain),
+         "--grace", "20", *extra],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )
+
+
+def reap(proc: subprocess.Popen, run_dir: Path) -> None:
+    """Teardown: never leave a runner or a node behind."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    pids = run_dir / "pids.json"
+    if pids.exists():
+        for pid in json.loads(pids.read_text()).values():
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+
+
+def wait_until(pred, timeout: float, what: str, proc: subprocess.Popen) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if proc.poll() is not None:
+            pytest.fail(f"der graph exited with {proc.returncode} while waiting for {what}:\n{proc.stdout.read()}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.1)
+
+
+def bag_meta(bag: Path) -> dict:
+    return yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+
+
+def counts(meta: dict) -> dict[str, int]:
+    return {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
+
+
+def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    steps = 60
+    proc = der_graph(run_dir, ros_domain, "--steps", str(steps), "--seed", "3")
+    try:
+        out, _ = proc.communicate(timeout=150)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 0, out
+    assert "der graph: finished" in out
+
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["ok"] and summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
+    assert summary["checkpoint"] and Path(summary["checkpoint"]).is_file()
+    assert summary["plots"] and all(Path(p).is_file() for p in summary["plots"])
+    params = yaml.safe_load((run_dir / "params.yaml").read_text())
+    assert params["bridge_node"]["ros__parameters"]["max_steps"] == steps
+    assert params["agent_node"]["ros__parameters"]["seed"] == 3
+
+    bag = run_dir / "bag"
+    meta = bag_meta(bag)
+    assert meta["custom_data"][FINALIZED_KEY] == "true"
+    c = counts(meta)
+    for topic in ("/state", "/reward", "/lane_change_cmd", "/episode", "/clock"):
+        assert c.get(topic, 0) > 0, (topic, c)
+    # the recorder stopped last, so it holds every state the bridge published (bridge's own count)
+    bridge_log = (run_dir / "logs" / "bridge_node.log").read_text()
+    bridge = json.loads(re.search(r"bridge summary: (\{.*\})", bridge_log).group(1))
+    assert c["/state"] == int(bridge["published_states"]) == c["/reward"]
+    assert c["/lane_change_cmd"] >= int(bridge["commands/accepted"]) >= steps - 1
+    episodes = read_episode_summary(bag)
+    ends = [e for e in episodes if e["event"] != "start"]
+    assert len(ends) == summary["episodes"] > 0
+    # the summary's outcome counts agree with the bridge's own counters
+    for event in ("success", "collision", "time_limit"):
+        assert summary["outcomes"][event] == int(bridge[f"events/{event}"]), event
+    assert summary["steps"] == int(bridge["sim_steps"]) == steps
+
+    with Reader(bag) as r:
+        conns = [x for x in r.connections if x.topic == "/state"]
+        stamps = []
+        for conn, _t, data in r.messages(connections=conns):
+            msg = TS.deserialize_cdr(data, conn.msgtype)
+            stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # step keys t_k, in order
+
+
+def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
+    try:
+        bag = run_dir / "bag"
+        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 20, 120,
+                   "states in the bag", proc)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 130, out
+    meta = bag_meta(run_dir / "bag")
+    assert meta["custom_data"][FINALIZED_KEY] == "true"
+    assert (run_dir / "agent.pt").is_file()  # the agent saved on its way out
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
+
+
+def test_a_dying_node_fails_the_run_and_is_named(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
+    try:
+        bag = run_dir / "bag"
+        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 5, 120,
+                   "states in the bag", proc)
+        agent_pid = json.loads((run_dir / "pids.json").read_text())["agent_node"]
+        os.kill(agent_pid, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 1, out
+    assert f"agent_node died (exit {-signal.SIGKILL})" in out
+    assert "last lines of agent_node" in out
+    last_line = (run_dir / "logs" / "agent_node.log").read_text().splitlines()[-1]
+    assert last_line in out  # the tail of its log
+    # the others were stopped cleanly: the recorder finalised the bag
+    assert bag_meta(run_dir / "bag")["custom_data"][FINALIZED_KEY] == "true"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exit_codes"]["recorder_node"] == 0 and summary["exit_codes"]["bridge_node"] == 0
+
+
+def test_composed_mode_runs_the_same_graph_in_one_process(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    proc = der_graph(run_dir, ros_domain, "--steps", "40", "--composed", "--no-plots")
+    try:
+        out, _ = proc.communicate(timeout=150)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 0, out
+    assert set(json.loads((run_dir / "pids.json").read_text())) == {"graph"}
+    log_text = (run_dir / "logs" / "graph.log").read_text()
+    bridge = json.loads(re.search(r"bridge summary: (\{.*\})", log_text).group(1))
+    assert bridge["sim_steps"] == 40
+    meta = bag_meta(run_dir / "bag")
+    assert meta["custom_data"][FINALIZED_KEY] == "true"
+    c = counts(meta)
+    assert c["/state"] == int(bridge["published_states"]) and c["/lane_change_cmd"] >= 40
+    assert (run_dir / "agent.pt").is_file()

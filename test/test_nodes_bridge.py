@@ -1,0 +1,177 @@
+"""Node tests of bridge_node: a real bridge process, the test's probe node plays the agent."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from ros_harness import ros_domain, ros_graph, wait_for  # noqa: F401 - fixtures
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Joy, PointCloud2
+
+from der_ros.nodes import msg_conversions as mc
+from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, field_index
+from sumo_bridge.scenario import ScenarioConfig
+
+pytestmark = pytest.mark.ros
+
+STEP_NS = int(round(ScenarioConfig().step_seconds * 1e9))
+LANE = field_index("lane")
+BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+class FakeAgent:
+    """The probe's view of the bridge: messages by stamp, and a command publisher."""
+
+    def __init__(self, graph, **params):
+        base = {"wait_for_agent": 20.0, "command_timeout": 10.0, "diagnostics_every": 1}
+        base.update(params)
+        self.probe = graph.probe
+        self.states = self.probe.collect("state", PointCloud2)
+        self.rewards = self.probe.collect("reward", Vector3Stamped)
+        self.episodes = self.probe.collect("episode", DiagnosticArray)
+        self.diags = self.probe.collect("bridge/diagnostics", DiagnosticArray)
+        self.clocks = self.probe.collect("/clock", Clock, qos=BEST_EFFORT)
+        self.odoms = self.probe.collect("ego/odom", Odometry, qos=qos_profile_sensor_data)
+        self.cmd = self.probe.publisher("lane_change_cmd", Joy)
+        self.proc = graph.start_node("sumo_bridge.bridge_node", params=base)
+
+    def state(self, k: int, timeout: float = 30.0) -> PointCloud2:
+        stamp = k * STEP_NS
+
+        def find():
+            return next((m for m in list(self.states) if mc.time_to_ns(m.header.stamp) == stamp), None)
+
+        return wait_for(find, timeout, what=f"state stamped {stamp}", procs=[self.proc])
+
+    def lane(self, k: int) -> int:
+        return int(mc.cloud_to_points(self.state(k))[0, LANE])
+
+    def send(self, k: int, action: int, sender: str = "probe", buttons=None, axes=None) -> None:
+        msg = mc.make_command(k * STEP_NS, action, sender)
+        if buttons is not None:
+            msg.buttons = buttons
+        if axes is not None:
+            msg.axes = axes
+        self.cmd.publish(msg)
+
+    def counters(self, at_least_steps: int = 0, timeout: float = 20.0) -> dict[str, float]:
+        """Latest bridge/diagnostics values once the bridge did at least ``at_least_steps`` steps."""
+
+        def latest():
+            if not self.diags:
+                return None
+            values = mc.diagnostics_to_metrics(self.diags[-1])
+            return values if values.get("sim_steps", 0) >= at_least_steps else None
+
+        return wait_for(latest, timeout, what=f"bridge diagnostics after {at_least_steps} steps", procs=[self.proc])
+
+
+def test_publishes_contract_layout_and_lane_change_moves_the_ego(ros_graph):  # noqa: F811
+    a = FakeAgent(ros_graph)
+    s0 = a.state(0)
+    assert [f.name for f in s0.fields] == list(POINT_FIELDS)
+    assert s0.width * s0.height == 1 + len(SLOT_NAMES)
+    points = mc.cloud_to_points(s0)
+    assert points[0, field_index("present")] == 1.0 and points[0, LANE] == 0  # ego starts on the outer lane
+    r0 = wait_for(lambda: [m for m in a.rewards if mc.time_to_ns(m.header.stamp) == 0], 5, what="reward 0")[0]
+    assert mc.parse_reward(r0) == (0, 0.0, False, False)
+    starts = wait_for(lambda: [e for m in a.episodes for e in mc.parse_episode_events(m)], 5, what="episode start")
+    assert starts[0][:2] == (0, "start")
+    # keep lane for three steps: the ego stays on lane 0 and every state arrives at t_k = k * step
+    for k in range(3):
+        a.send(k, 0)
+        assert a.lane(k + 1) == 0
+    # change left (towards lane 1, the inner lane): visible in the very next state
+    a.send(3, 1)
+    assert a.lane(4) == 1
+    r4 = next(m for m in a.rewards if mc.time_to_ns(m.header.stamp) == 4 * STEP_NS)
+    assert math.isfinite(r4.vector.x)
+    # /clock carries the same step keys (best effort: some may be dropped, never out of order)
+    clocks = [mc.time_to_ns(c.clock) for c in list(a.clocks)]
+    assert clocks and clocks == sorted(clocks) and set(clocks) <= {k * STEP_NS for k in range(10)}
+    wait_for(lambda: any(mc.time_to_ns(o.header.stamp) == 4 * STEP_NS for o in list(a.odoms)), 5, what="ego/odom")
+    c = a.counters(at_least_steps=4)
+    assert c["commands/accepted"] == 4 and c["commands/timeouts"] == 0
+
+
+def test_lockstep_late_command_and_duplicate_never_apply_to_another_step(ros_graph):  # noqa: F811
+    timeout = 1.0
+    a = FakeAgent(ros_graph, command_timeout=timeout)
+    a.state(0)
+    # no answer to step 0 within the timeout: the default (keep lane) is applied
+    time.sleep(1.6 * timeout)
+    assert a.lane(1) == 0
+    # the late answer to step 0 asks for a lane change; it must not be applied to step 1
+    a.send(0, 1)
+    a.send(1, 0)
+    assert a.lane(2) == 0
+    # a duplicate of the answer to step 2 (with another action) must not be applied to step 3
+    a.send(2, 0)
+    a.send(2, 1)
+    a.state(3)
+    a.send(3, 0)
+    assert a.lane(4) == 0
+    c = a.counters(at_least_steps=4)
+    assert c["commands/late"] == 1
+    assert c["commands/duplicate"] == 1
+    assert c["commands/timeouts"] == 1
+    assert c["commands/accepted"] == 3
+
+
+def test_bad_commands_and_parameters_are_rejected_without_a_crash(ros_graph):  # noqa: F811
+    a = FakeAgent(ros_graph)
+    a.state(0)
+    a.send(0, 5)  # out of range
+    a.send(0, 0, buttons=[0, 1])  # wrong size
+    a.send(0, 0, buttons=[])
+    a.send(0, 0, axes=[float("nan")])  # NaN in axes
+    a.send(7, 0)  # a step that was never published
+    a.send(0, 0, sender="agent-A")  # the first valid command locks the sender
+    assert a.lane(1) == 0
+    intruder = a.probe.publisher("lane_change_cmd", Joy)  # a second publisher
+    wait_for(lambda: intruder.get_subscription_count() > 0, 10, what="the bridge to match the second publisher")
+    intruder.publish(mc.make_command(STEP_NS, 1, "intruder"))
+    time.sleep(0.3)  # let it arrive first (no ordering across publishers)
+    a.send(1, 0, sender="agent-A")
+    assert a.lane(2) == 0  # the intruder's lane change was not applied
+    c = a.counters(at_least_steps=2)
+    assert c["commands/out_of_range"] == 1
+    assert c["commands/malformed"] == 3
+    assert c["commands/unknown_step"] == 1
+    assert c["commands/foreign_sender"] == 1
+    assert c["commands/accepted"] == 2 and c["commands/timeouts"] == 0
+
+    # parameters: read-only and invalid values are refused with a reason; nothing changes
+    results = a.probe.set_parameters("bridge_node", {"command_timeout": -1.0})
+    assert not results[0].successful and results[0].reason
+    results = a.probe.set_parameters("bridge_node", {"mode": "bogus"})
+    assert not results[0].successful and results[0].reason
+    results = a.probe.set_parameters("bridge_node", {"scenario.step_length": 99.0})
+    assert not results[0].successful and results[0].reason
+    got = a.probe.get_parameters("bridge_node", ["command_timeout", "mode", "scenario.step_length"])
+    assert got == {"command_timeout": 10.0, "mode": "lockstep", "scenario.step_length": 0.1}
+    # and the simulation goes on
+    a.send(2, 0, sender="agent-A")
+    assert a.lane(3) == 0
+    assert a.proc.poll() is None
+    assert a.proc.stop() == 0  # SIGINT: clean exit with the summary
+    assert "bridge summary:" in a.proc.output()
+
+
+def test_free_run_steps_on_its_timer_and_applies_the_latest_command(ros_graph):  # noqa: F811
+    a = FakeAgent(ros_graph, mode="free_run", real_time_factor=2.0)  # a step every 0.25 s of wall time
+    # nobody answers: the simulation still advances, one stamp per step
+    assert a.lane(3) == 0
+    stamps = sorted(mc.time_to_ns(m.header.stamp) for m in list(a.states))
+    assert stamps[:4] == [k * STEP_NS for k in range(4)]
+    a.state(4)
+    a.send(4, 1)  # answered within the step period: applied at the next tick
+    assert a.lane(5) == 1
+    c = a.counters(at_least_steps=5)
+    assert c["commands/accepted"] == 1 and c["commands/timeouts"] == 0

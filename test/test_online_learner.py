@@ -1,0 +1,185 @@
+"""Unit tests of the agent node's ROS-free core: joining by stamp, transitions, episodes, pause."""
+
+import numpy as np
+import pytest
+
+from der_ros.agent.online import OnlineLearner
+
+S = 100_000_000
+
+
+class FakeAgent:
+    """Records calls; acts by a fixed cycle so tests know which action answered which state."""
+
+    def __init__(self, actions=(1, 2, 0)):
+        self.actions = list(actions)
+        self.i = 0
+        self.observed = []
+        self.acted = []
+        self.learn_calls = 0
+
+    def act(self, obs, explore=True):
+        a = self.actions[self.i % len(self.actions)]
+        self.i += 1
+        self.acted.append((float(obs[0]), explore))
+        return a
+
+    def observe(self, obs, action, reward, next_obs, terminated, truncated):
+        self.observed.append((float(obs[0]), action, reward, float(next_obs[0]), terminated, truncated))
+
+    def learn(self):
+        self.learn_calls += 1
+        return {"losses/td_loss": 1.0}
+
+
+def obs(v):
+    return np.array([v, 0.0], dtype=np.float32)
+
+
+def step(learner, k, reward, term=False, trunc=False, reward_first=True):
+    if reward_first:
+        out = learner.on_reward(k * S, reward, term, trunc)
+        assert out == []
+        return learner.on_state(k * S, obs(k))
+    out = learner.on_state(k * S, obs(k))
+    assert out == []
+    return learner.on_reward(k * S, reward, term, trunc)
+
+
+def test_transitions_follow_the_contract():
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    d0 = step(L, 0, 0.0)
+    assert [d.action for d in d0] == [1] and d0[0].stamp_ns == 0 and not d0[0].stored
+    d1 = step(L, 1, 0.5, reward_first=False)  # arrival order across topics does not matter
+    assert d1[0].action == 2 and d1[0].stored
+    d2 = step(L, 2, -1.0, term=True)
+    assert d2[0].action is None  # no command for a terminal state
+    ep = d2[0].episode
+    assert ep is not None and ep.ret == pytest.approx(-0.5) and ep.length == 2 and ep.terminated
+    assert ep.lane_change_cmds == 2  # actions 1 and 2 were lane-change commands
+    # (s_k, a_k, r_{k+1}, s_{k+1}, terminated_{k+1}, truncated_{k+1})
+    assert agent.observed == [
+        (0.0, 1, 0.5, 1.0, False, False),
+        (1.0, 2, -1.0, 2.0, True, False),
+    ]
+    # next episode: first state forms no transition with the terminal one
+    d3 = step(L, 3, 0.0)
+    assert d3[0].action == 0 and not d3[0].stored
+    d4 = step(L, 4, 1.0, trunc=True)
+    assert agent.observed[-1] == (3.0, 0, 1.0, 4.0, False, True)
+    assert d4[0].episode.truncated and not d4[0].episode.terminated and d4[0].episode.index == 1
+    assert d4[0].episode.lane_change_cmds == 0
+    assert L.counters["transitions"] == 3
+
+
+def test_duplicates_and_stale_messages_are_counted_not_used():
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    step(L, 0, 0.0)
+    assert L.on_state(0, obs(9)) == []  # re-delivery of a completed stamp
+    assert L.counters["stale_state"] == 1
+    L.on_reward(S, 0.1, False, False)
+    assert L.on_reward(S, 0.7, False, False) == []
+    assert L.counters["duplicate_reward"] == 1
+    d = L.on_state(S, obs(1))
+    assert d[0].action is not None
+    assert agent.observed == [(0.0, 1, pytest.approx(0.1), 1.0, False, False)]  # first copy wins
+    assert L.on_reward(0, 5.0, False, False) == []
+    assert L.counters["stale_reward"] == 1
+
+
+def test_lagging_topic_steps_are_joined_in_stamp_order():
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    step(L, 0, 0.0)
+    # the state topic runs two steps ahead of the reward topic (DDS orders topics separately)
+    assert L.on_state(S, obs(1)) == []
+    assert L.on_state(2 * S, obs(2)) == []
+    d1 = L.on_reward(S, 1.0, False, False)
+    d2 = L.on_reward(2 * S, 2.0, False, False)
+    assert [x.stamp_ns for x in d1 + d2] == [S, 2 * S]
+    assert [(o[0], o[2], o[3]) for o in agent.observed] == [(0.0, 1.0, 1.0), (1.0, 2.0, 2.0)]
+    assert L.counters["gaps"] == 0
+
+
+def test_known_step_size_detects_a_step_lost_on_both_topics():
+    agent = FakeAgent()
+    L = OnlineLearner(agent, step_ns=S)
+    step(L, 0, 0.0)
+    d = step(L, 2, 2.0)  # step 1 never arrived at all
+    assert not d[0].stored and L.counters["gaps"] == 1 and agent.observed == []
+    step(L, 3, 3.0)
+    assert [(o[0], o[3]) for o in agent.observed] == [(2.0, 3.0)]
+
+
+def test_lost_message_is_a_gap_and_never_joins_wrong_states():
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    step(L, 0, 0.0)
+    L.on_state(S, obs(1))  # the reward of step 1 is lost
+    d = step(L, 2, 2.0)
+    assert d[0].action is not None and not d[0].stored
+    assert L.counters["gaps"] == 1
+    assert agent.observed == []  # (s_0, a_0) was not joined to s_2
+    step(L, 3, 3.0)
+    assert agent.observed == [(2.0, agent.observed[0][1], 3.0, 3.0, False, False)]
+
+
+def test_buffer_is_bounded():
+    L = OnlineLearner(FakeAgent(), max_buffered=4)
+    for k in range(10):
+        L.on_state(k * S, obs(k))  # rewards never arrive
+    assert L.buffered == 4 and L.counters["evicted"] == 6
+
+
+def test_pause_acts_greedily_and_does_not_learn():
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    step(L, 0, 0.0)
+    L.set_paused(True)
+    step(L, 1, 1.0)
+    step(L, 2, 1.0)
+    assert agent.observed == []  # the pending training step was dropped, evaluation steps not stored
+    assert agent.acted[-1][1] is False and agent.acted[0][1] is True
+    assert L.learn() == {} and agent.learn_calls == 0
+    d = step(L, 3, 1.0, term=True)
+    assert d[0].episode.evaluation is False  # episode started in training mode
+    step(L, 4, 0.0)
+    d = step(L, 5, 2.0, term=True)
+    assert d[0].episode.evaluation and "eval/episodic_return" in d[0].episode.metrics()
+    L.set_paused(False)
+    step(L, 6, 0.0)
+    step(L, 7, 1.0)
+    assert len(agent.observed) == 1
+    assert L.learn() == {"losses/td_loss": 1.0} and L.counters["learn_steps"] == 1
+
+
+def test_encode_is_applied_to_state_payloads():
+    agent = FakeAgent()
+    L = OnlineLearner(agent, encode=lambda p: np.asarray(p, dtype=np.float32) * 10)
+    step(L, 0, 0.0)
+    step(L, 1, 0.0)
+    assert agent.observed[0][0] == 0.0 and agent.observed[0][3] == 10.0
+
+
+def test_with_real_dqn_agent_buffers_fill_and_learning_starts():
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    from der_ros.agent.config import DQNConfig
+    from der_ros.agent.dqn import DQNAgent
+    from der_ros.replay.config import ReplayConfig
+
+    cfg = DQNConfig(batch_size=4, learning_starts=8, hidden_sizes=[16])
+    agent = DQNAgent((2,), np.float32, 3, cfg, ReplayConfig(), seed=1)
+    L = OnlineLearner(agent)
+    rng = np.random.default_rng(0)
+    got = {}
+    for k in range(40):
+        term = k % 10 == 9
+        L.on_reward(k * S, float(rng.normal()) if k % 10 else 0.0, term, False)
+        for d in L.on_state(k * S, rng.normal(size=2).astype(np.float32)):
+            assert d.action is None or 0 <= d.action < 3
+        got.update(L.learn())
+    assert len(agent.replay) == L.counters["transitions"] == 36  # 4 episodes x 9 transitions
+    assert "losses/td_loss" in got and np.isfinite(got["losses/td_loss"])

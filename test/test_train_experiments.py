@@ -1,0 +1,126 @@
+"""Experiment suites: bootstrap statistics, paper scores, `der table1` / `der table2` end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from der_ros import cli
+from der_ros.experiments.stats import (
+    average_score,
+    bootstrap_band,
+    bootstrap_ci,
+    curve_on_grid,
+    max_moving_average,
+    mean_of_last,
+    moving_average,
+)
+from der_ros.experiments.suite import PAPER_METHODS, methods_by_name, plan_runs
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_bootstrap_ci_on_known_data() -> None:
+    rng = np.random.default_rng(42)
+    x = rng.normal(10.0, 2.0, size=400)
+    ci = bootstrap_ci(x, n_resamples=10_000, seed=0)
+    assert ci.mean == pytest.approx(float(x.mean()))
+    half = 1.96 * x.std(ddof=1) / np.sqrt(x.size)  # normal-theory 95% half-width
+    assert ci.low < ci.mean < ci.high
+    assert (ci.high - ci.low) / 2 == pytest.approx(half, rel=0.1)
+    assert bootstrap_ci(x, seed=0) == ci  # fixed seed: reproducible bit for bit
+    const = bootstrap_ci([3.0, 3.0, 3.0])
+    assert (const.low, const.mean, const.high) == (3.0, 3.0, 3.0)
+    one = bootstrap_ci([5.0])
+    assert (one.low, one.high, one.n) == (5.0, 5.0, 1)
+    assert np.isnan(bootstrap_ci([]).mean)
+    # two values 0 and 1: resampled means take values 0, 0.5, 1 -> 95% interval is [0, 1]
+    two = bootstrap_ci([0.0, 1.0])
+    assert (two.low, two.mean, two.high) == (0.0, 0.5, 1.0)
+
+
+def test_bootstrap_band_per_point() -> None:
+    curves = np.array([[0.0, 1.0, np.nan], [2.0, 1.0, 4.0]])
+    mean, lo, hi = bootstrap_band(curves)
+    np.testing.assert_allclose(mean, [1.0, 1.0, 4.0])
+    np.testing.assert_allclose(lo, [0.0, 1.0, 4.0])
+    np.testing.assert_allclose(hi, [2.0, 1.0, 4.0])
+
+
+def test_paper_scores() -> None:
+    returns = np.array([10, 20, 30, 40, 500, 500, 0], dtype=float)
+    assert max_moving_average(returns, window=2) == 500.0
+    assert max_moving_average(returns, window=3) == pytest.approx((40 + 500 + 500) / 3)
+    assert max_moving_average(returns[:2], window=20) == 15.0  # fewer episodes than the window
+    assert average_score(returns) == pytest.approx(returns.mean())
+    assert mean_of_last(returns, 3) == pytest.approx(1000 / 3)
+    np.testing.assert_allclose(moving_average([1, 2, 3, 4], 2), [1.5, 2.5, 3.5])
+    # learning curve on a step grid: moving average of the episodes finished by each grid step
+    steps = np.array([10, 20, 30, 40])
+    curve = curve_on_grid(steps, [1.0, 3.0, 5.0, 7.0], np.array([5, 10, 25, 40, 100]), window=2)
+    np.testing.assert_allclose(curve, [np.nan, 1.0, 2.0, 6.0, 6.0])
+
+
+def test_methods_and_run_plan() -> None:
+    assert [m.name for m in PAPER_METHODS] == ["dqn", "der0.1", "der0.5", "der0.9", "per"]
+    specs = plan_runs("cfg.yaml", methods_by_name(["dqn", "der0.9"]), [0, 1], "/out", {"train.total_steps": 5})
+    assert [Path(s.run_dir).relative_to("/out").as_posix() for s in specs] == [
+        "dqn/seed0",
+        "dqn/seed1",
+        "der0.9/seed0",
+        "der0.9/seed1",
+    ]
+    ov = specs[2].all_overrides()
+    assert ov["replay.kind"] == "der" and ov["replay.lam"] == 0.9 and ov["train.seed"] == 0
+    assert ov["train.total_steps"] == 5 and ov["train.progress"] is False
+    with pytest.raises(ValueError, match="unknown"):
+        methods_by_name(["dqn", "nope"])
+
+
+def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out, results = tmp_path / "runs", tmp_path / "results"
+    argv = ["table1", "--config", str(REPO / "config" / "cartpole.yaml"), "--seeds", "2", "--steps", "300"]
+    argv += ["--methods", "dqn", "der0.9", "--jobs", "2", "--out", str(out), "--results", str(results)]
+    argv += ["--set", "agent.learning_starts=100", "--set", "agent.hidden_sizes=[32]"]
+    argv += ["--set", "train.tensorboard=false", "--set", "train.save_final_checkpoint=false"]
+    assert cli.main(argv) == 0
+    md = (results / "table1.md").read_text()
+    assert "| DQN |" in md and "| λ = 0.9 |" in md
+    assert "373.80" in md and "229.30" in md and "285.49" in md  # the paper's numbers beside ours
+    assert "--seeds 2" in md and "torch:" in md and "gymnasium:" in md and "seeds: 0, 1" in md
+    for png in ("table1_curves.png", "table1_td.png"):
+        assert (results / png).stat().st_size > 10_000
+    summaries = sorted(out.glob("*/seed*/summary.json"))
+    assert len(summaries) == 4
+    for p in summaries:
+        s = json.loads(p.read_text())
+        assert s["steps"] == 300 and s["episodes"] > 0
+    # the per-seed rows carry each run's own scores
+    dqn0 = json.loads((out / "dqn" / "seed0" / "summary.json").read_text())
+    assert f"| DQN | 0 | {dqn0['episodes']} | {dqn0['max_ma20_return']:.2f} | {dqn0['mean_return']:.2f} |" in md
+    # rerun: every run is finished, nothing is retrained
+    mtimes = [p.stat().st_mtime_ns for p in summaries]
+    (results / "table1.md").unlink()
+    assert cli.main(argv) == 0
+    assert [p.stat().st_mtime_ns for p in summaries] == mtimes
+    assert (results / "table1.md").read_text().split("## Runs")[0] == md.split("## Runs")[0]
+    capsys.readouterr()
+
+
+def test_table2_short_atari_run(tmp_path: Path) -> None:
+    out, results = tmp_path / "runs", tmp_path / "results"
+    argv = ["table2", "--config", str(REPO / "config" / "atari.yaml"), "--games", "Breakout", "--methods", "der0.1"]
+    argv += ["--seeds", "1", "--steps", "300", "--jobs", "1", "--out", str(out), "--results", str(results)]
+    argv += ["--set", "replay.capacity=500", "--set", "replay.h2_capacity=64", "--set", "agent.batch_size=16"]
+    argv += ["--set", "agent.learning_starts=100", "--set", "train.tensorboard=false"]
+    assert cli.main(argv) == 0
+    md = (results / "table2.md").read_text()
+    assert "| Breakout |" in md and "58.28" in md  # paper's lambda = 0.1 Breakout score beside ours
+    summary = json.loads((out / "breakout" / "der0.1" / "seed0" / "summary.json").read_text())
+    assert summary["steps"] == 300
+    assert (results / "table2_curves.png").is_file()
+    cfg = (out / "breakout" / "der0.1" / "seed0" / "config.yaml").read_text()
+    assert "ALE/Breakout-v5" in cfg
