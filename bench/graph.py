@@ -51,32 +51,53 @@ def _agent_config(overrides: dict) -> tuple:
     return agent, replay, int(values.get("seed", 0))
 
 
-def run_inprocess(steps: int, overrides: dict) -> float:
-    """Steps/s of the plain training loop (act -> env.step -> observe -> learn)."""
+def _scenario_config() -> object:
+    """The bridge's ScenarioConfig from the params file (the graph runs exactly this scenario)."""
+    import yaml
+
+    from der_ros.configuration import from_dict
+    from der_ros.nodes.params import unflatten
+    from sumo_bridge.scenario import ScenarioConfig
+
+    values = yaml.safe_load(PARAMS_FILE.read_text())["bridge_node"]["ros__parameters"]
+    scenario = {k: v for k, v in values.items() if k.startswith("scenario.")}
+    return from_dict(ScenarioConfig, unflatten("scenario", scenario))
+
+
+def run_inprocess(steps: int, overrides: dict) -> tuple[float, int]:
+    """Steps/s and episodes of the plain training loop (act -> env.step -> observe -> learn)."""
     import numpy as np
     import torch
 
     torch.set_num_threads(1)
     from der_ros.agent.dqn import DQNAgent
     from sumo_bridge.lane_change_env import LaneChangeEnv
-    from sumo_bridge.scenario import ScenarioConfig
 
     dqn_cfg, replay_cfg, seed = _agent_config(overrides)
-    env = LaneChangeEnv(ScenarioConfig())
+    env = LaneChangeEnv(_scenario_config())
     obs, _ = env.reset()
     agent = DQNAgent(obs.shape, np.float32, int(env.action_space.n), dqn_cfg, replay_cfg, seed=seed)
+    # Same order of calls as the agent node (der_ros.agent.online + agent_node): observe the
+    # transition, act on the new state, then learn (the node publishes before it learns); at a
+    # terminal state learn, then reset and act on the first state of the next episode.
+    episodes = 1
+    a = agent.act(obs)
     t0 = time.perf_counter()
     for _ in range(steps):
-        a = agent.act(obs)
         next_obs, r, term, trunc, _ = env.step(a)
         agent.observe(obs, a, r, next_obs, term, trunc)
-        agent.learn()
-        obs = next_obs
         if term or trunc:
+            agent.learn()
             obs, _ = env.reset()
+            episodes += 1
+            a = agent.act(obs)
+        else:
+            obs = next_obs
+            a = agent.act(obs)
+            agent.learn()
     rate = steps / (time.perf_counter() - t0)
     env.close()
-    return rate
+    return rate, episodes
 
 
 def _param_args(params: dict) -> list[str]:
@@ -138,8 +159,8 @@ def main() -> int:
     steps = 600 if args.quick else args.steps
     overrides = {"agent.learning_starts": 100} if args.quick else {}
     workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
-    inproc = run_inprocess(steps, overrides)
-    print(f"in-process: {inproc:.1f} steps/s", file=sys.stderr)
+    inproc, inproc_episodes = run_inprocess(steps, overrides)
+    print(f"in-process: {inproc:.1f} steps/s, {inproc_episodes} episodes", file=sys.stderr)
     graph = run_graph(steps, overrides, evaluate=False, workdir=workdir)
     print(f"graph (training): {json.dumps(graph)}", file=sys.stderr)
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
@@ -153,6 +174,9 @@ def main() -> int:
         "roundtrip_p50_ms": round(graph["roundtrip_p50_ms"], 3),
         "roundtrip_p99_ms": round(graph["roundtrip_p99_ms"], 3),
         "timeouts": graph["commands/timeouts"],
+        "graph_episodes": int(graph["episodes_started"]),
+        "inprocess_episodes": inproc_episodes,
+        "graph_bridge_busy_fraction": round(graph["busy_fraction"], 3),
         "eval_graph_steps_per_s": round(graph_eval["steps_per_s"], 1),
         "eval_roundtrip_p50_ms": round(graph_eval["roundtrip_p50_ms"], 3),
         "eval_roundtrip_p99_ms": round(graph_eval["roundtrip_p99_ms"], 3),

@@ -31,6 +31,7 @@ import warnings
 from collections.abc import Callable
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # TorchRL logs storage set-up to stdout otherwise
 
 import numpy as np  # noqa: E402
 

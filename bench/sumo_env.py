@@ -11,8 +11,9 @@
 * ``traci_getters_steps_per_s`` (peer): a plain traci loop reading the same quantities with one
   getter call each (neighbour getters, every vehicle's speed), i.e. without our subscriptions.
 
-The two backends run one after the other (one libsumo simulation per process; traci closed
-before). Then, unless ``--no-policies``, success/collision rates of scripted policies
+All four are measured in interleaved rounds (the load of a shared machine drifts); the medians
+of the per-round rates and ratios are reported. The traci env runs beside the libsumo one (its
+SUMO is a subprocess; only a second *libsumo* simulation is refused). Then, unless ``--no-policies``, success/collision rates of scripted policies
 (:mod:`sumo_bridge.policies`) on both networks with their default scenarios, which show the task
 needs timing. Prints a table, then one JSON line.
 
@@ -43,77 +44,89 @@ from sumo_bridge.scenario import ScenarioConfig  # noqa: E402
 BENCH_CFG = {"decision_interval": 1, "max_episode_steps": 100_000}
 
 
-def raw_rate(steps: int, chunk: int = 1000) -> float:
-    env = LaneChangeEnv(ScenarioConfig.ring(**BENCH_CFG))
-    try:
-        step = env.api.simulationStep
-        elapsed, done, seed = 0.0, 0, 0
-        while done < steps:
-            env.reset(seed=seed)  # fresh traffic (routes are finite loops)
-            seed += 1
-            n = min(chunk, steps - done)
-            t0 = time.perf_counter()
-            for _ in range(n):
-                step()
-            elapsed += time.perf_counter() - t0
-            done += n
-        return steps / elapsed
-    finally:
-        env.close()
-
-
-def env_rate(backend: str, steps: int) -> tuple[float, float]:
-    """(env steps per second inside step(), mean reset ms) with a random policy."""
-    env = LaneChangeEnv(ScenarioConfig.ring(backend=backend, **BENCH_CFG))
-    rng = np.random.default_rng(0)
-    step_time, reset_times, done = 0.0, [], 0
-    try:
+def _chunk_env(env: LaneChangeEnv, steps: int, rng: np.random.Generator, seed: int) -> float:
+    """Seconds inside ``env.step`` for ``steps`` steps of a mostly-keep, sometimes random policy."""
+    env.reset(seed=seed)
+    elapsed = 0.0
+    for _ in range(steps):
+        a = int(rng.integers(3)) if rng.random() < 0.05 else 0
         t0 = time.perf_counter()
-        env.reset(seed=0)
-        reset_times.append(time.perf_counter() - t0)
-        while done < steps:
-            a = int(rng.integers(3)) if rng.random() < 0.05 else 0  # random, changing now and then
-            t0 = time.perf_counter()
-            _obs, _r, term, trunc, _info = env.step(a)
-            step_time += time.perf_counter() - t0
-            done += 1
-            if term or trunc or done % 1000 == 0:
-                t0 = time.perf_counter()
-                env.reset()
-                reset_times.append(time.perf_counter() - t0)
-    finally:
-        env.close()
-    return done / step_time, 1000.0 * statistics.mean(reset_times)
+        _obs, _r, term, trunc, _info = env.step(a)
+        elapsed += time.perf_counter() - t0
+        if term or trunc:
+            env.reset()
+    return elapsed
 
 
-def traci_getters_rate(steps: int) -> float:
+def _chunk_raw(env: LaneChangeEnv, steps: int, seed: int) -> float:
+    env.reset(seed=seed)  # same vehicles as the env places; its subscriptions stay active
+    step = env.api.simulationStep
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return time.perf_counter() - t0
+
+
+def _chunk_getters(env: LaneChangeEnv, steps: int, seed: int) -> float:
     """Peer: traci with one getter call per quantity (no subscriptions), as a naive env would do.
 
     Per step: simulationStep, the six neighbour getters of the ego, the vehicle list, every
     vehicle's speed and the collision count (what our env reads through subscriptions).
     """
-    env = LaneChangeEnv(ScenarioConfig.ring(backend="traci", **BENCH_CFG))
+    env.reset(seed=seed)
+    v, sim, ego = env.api.vehicle, env.api.simulation, env.ego_id
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.api.simulationStep()
+        v.getLeader(ego, 30.0), v.getFollower(ego, 30.0)
+        v.getLeftLeaders(ego), v.getLeftFollowers(ego), v.getRightLeaders(ego), v.getRightFollowers(ego)
+        _speeds = [v.getSpeed(x) for x in v.getIDList()]
+        sim.getCollidingVehiclesNumber()
+    return time.perf_counter() - t0
+
+
+def _reset_ms(env: LaneChangeEnv, n: int) -> float:
+    env.reset(seed=0)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        env.reset()
+    return 1000.0 * (time.perf_counter() - t0) / n
+
+
+def speed(rounds: int, chunk: int, traci_chunk: int) -> dict[str, float]:
+    """Interleaved rounds (raw, env, traci env, traci getters): the machine's load drifts, so each
+    round measures all four back to back and the medians of the per-round rates are reported.
+
+    The libsumo env and the traci env live side by side (traci runs SUMO in a subprocess; only a
+    second libsumo simulation is refused).
+    """
+    lib = LaneChangeEnv(ScenarioConfig.ring(**BENCH_CFG))
+    tra = LaneChangeEnv(ScenarioConfig.ring(backend="traci", **BENCH_CFG))
+    rng = np.random.default_rng(0)
+    raw, env_r, traci_r, getters_r = [], [], [], []
     try:
-        v, sim = env.api.vehicle, env.api.simulation
-        elapsed, done, seed = 0.0, 0, 0
-        while done < steps:
-            env.reset(seed=seed)
-            seed += 1
-            ego = env.ego_id
-            n = min(500, steps - done)
-            t0 = time.perf_counter()
-            for _ in range(n):
-                env.api.simulationStep()
-                v.getLeader(ego, 30.0), v.getFollower(ego, 30.0)
-                v.getLeftLeaders(ego), v.getLeftFollowers(ego), v.getRightLeaders(ego), v.getRightFollowers(ego)
-                speeds = [v.getSpeed(x) for x in v.getIDList()]
-                sim.getCollidingVehiclesNumber()
-            elapsed += time.perf_counter() - t0
-            done += n
-            del speeds
-        return steps / elapsed
+        for k in range(rounds):
+            raw.append(chunk / _chunk_raw(lib, chunk, seed=k))
+            env_r.append(chunk / _chunk_env(lib, chunk, rng, seed=k))
+            traci_r.append(traci_chunk / _chunk_env(tra, traci_chunk, rng, seed=k))
+            getters_r.append(traci_chunk / _chunk_getters(tra, traci_chunk, seed=k))
+        reset_ms = _reset_ms(lib, 20 * rounds)
+        traci_reset_ms = _reset_ms(tra, 2 * rounds)
     finally:
-        env.close()
+        lib.close()
+        tra.close()
+    med = statistics.median
+    return {
+        "raw": med(raw),
+        "env": med(env_r),
+        "traci": med(traci_r),
+        "getters": med(getters_r),
+        "env_over_raw": med([e / r for e, r in zip(env_r, raw)]),
+        "env_over_traci": med([e / t for e, t in zip(env_r, traci_r)]),
+        "env_over_getters": med([e / g for e, g in zip(env_r, getters_r)]),
+        "reset_ms": reset_ms,
+        "traci_reset_ms": traci_reset_ms,
+    }
 
 
 def evaluate(network: str, policy: Callable[[np.ndarray], int], episodes: int, seed: int) -> dict[str, float]:
@@ -150,28 +163,26 @@ def main() -> int:
     parser.add_argument("--no-policies", action="store_true", help="skip the scripted-policy success rates")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    n_raw, n_env, n_traci, episodes = (3000, 3000, 500, 30) if args.quick else (20000, 20000, 3000, 200)
+    rounds, chunk, traci_chunk, episodes = (3, 1000, 200, 30) if args.quick else (15, 2000, 400, 200)
 
-    raw = raw_rate(n_raw)
-    env_sps, reset_ms = env_rate("libsumo", n_env)
-    traci_sps, traci_reset_ms = env_rate("traci", n_traci)
-    getters_sps = traci_getters_rate(n_traci)
-    print(f"{'measure':<34}{'value':>12}")
-    print(f"{'raw libsumo simulationStep / s':<34}{raw:>12.0f}")
-    print(f"{'env step / s (libsumo)':<34}{env_sps:>12.0f}   {env_sps / raw:.2f} x raw")
-    print(f"{'env step / s (traci)':<34}{traci_sps:>12.0f}   libsumo is {env_sps / traci_sps:.1f} x traci")
-    print(f"{'reset ms (libsumo / traci)':<34}{reset_ms:>12.2f}   {traci_reset_ms:.2f}")
-    print(f"{'peer: traci with getters / s':<34}{getters_sps:>12.0f}   libsumo env is {env_sps / getters_sps:.1f} x")
+    m = speed(rounds, chunk, traci_chunk)
+    print(f"{'measure (median of ' + str(rounds) + ' rounds)':<34}{'value':>12}")
+    print(f"{'raw libsumo simulationStep / s':<34}{m['raw']:>12.0f}")
+    print(f"{'env step / s (libsumo)':<34}{m['env']:>12.0f}   {m['env_over_raw']:.2f} x raw")
+    print(f"{'env step / s (traci)':<34}{m['traci']:>12.0f}   libsumo env is {m['env_over_traci']:.1f} x")
+    print(f"{'peer: traci with getters / s':<34}{m['getters']:>12.0f}   libsumo env is {m['env_over_getters']:.1f} x")
+    print(f"{'reset ms (libsumo / traci)':<34}{m['reset_ms']:>12.2f}   {m['traci_reset_ms']:.2f}")
 
     result: dict[str, object] = {
-        "raw_steps_per_s": round(raw, 1),
-        "env_steps_per_s": round(env_sps, 1),
-        "traci_env_steps_per_s": round(traci_sps, 1),
-        "reset_ms": round(reset_ms, 3),
-        "env_over_raw": round(env_sps / raw, 3),
-        "env_over_traci": round(env_sps / traci_sps, 2),
-        "traci_getters_steps_per_s": round(getters_sps, 1),
-        "env_over_traci_getters": round(env_sps / getters_sps, 2),
+        "raw_steps_per_s": round(m["raw"], 1),
+        "env_steps_per_s": round(m["env"], 1),
+        "traci_env_steps_per_s": round(m["traci"], 1),
+        "reset_ms": round(m["reset_ms"], 3),
+        "env_over_raw": round(m["env_over_raw"], 3),
+        "env_over_traci": round(m["env_over_traci"], 2),
+        "traci_getters_steps_per_s": round(m["getters"], 1),
+        "env_over_traci_getters": round(m["env_over_getters"], 2),
+        "traci_reset_ms": round(m["traci_reset_ms"], 3),
     }
     if not args.no_policies:
         policies: dict[str, Callable[[np.ndarray], int]] = {

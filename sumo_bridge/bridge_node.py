@@ -42,6 +42,7 @@ from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RclClock
 from rclpy.clock import ClockType
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
@@ -68,8 +69,8 @@ class BridgeNodeConfig:
                       choices=("lockstep", "free_run"))
     command_timeout: float = param(
         2.0, "lockstep: seconds to wait for the command answering a state before applying the default action "
-        "(0 = keep lane); keep it above the agent's longest pause (checkpoint save), since the agent stores its own "
-        "action for a step the bridge closed with the default", low=0.0, low_inclusive=False)
+        "(0 = keep lane; the next reward's frame_id says applied_action=0, so the learner stores what was applied); "
+        "keep it above the agent's longest pause (checkpoint save)", low=0.0, low_inclusive=False)
     real_time_factor: float = param(
         1.0, "free_run: simulated seconds per wall-clock second", low=0.0, low_inclusive=False)
     max_steps: int = param(0, "simulation steps before the node exits 0 (0 = unlimited)", low=0)
@@ -162,6 +163,7 @@ class BridgeNode(Node):
         self._run_timer = None
         self._startup_timer = self.create_timer(0.05, self._maybe_start, clock=steady)
         self._startup_deadline = time.monotonic() + self.cfg.wait_for_agent
+        self._ready_ticks = 0
 
         self.k = 0  # global count of published states (the step key is k * step_ns)
         self.sim_steps = 0
@@ -187,8 +189,13 @@ class BridgeNode(Node):
             and self.count_subscribers("reward") >= self.cfg.min_subscribers
             and self.count_publishers("lane_change_cmd") > 0
         )
-        if not ready and time.monotonic() < self._startup_deadline:
+        # Seen from here, a subscriber is matched as soon as we discovered it; the subscriber may
+        # match our writers a moment later, and a first state sent before that would be lost. So
+        # the graph must look ready on a few consecutive ticks (0.05 s apart) before step 0.
+        self._ready_ticks = self._ready_ticks + 1 if ready else 0
+        if self._ready_ticks < 4 and time.monotonic() < self._startup_deadline:
             return
+        ready = self._ready_ticks >= 4
         self._startup_timer.cancel()
         self.destroy_timer(self._startup_timer)
         if not ready:
@@ -214,11 +221,13 @@ class BridgeNode(Node):
         self._lane = info.get("lane")
         stamp = self._stamp()
         self.pub_episode.publish(mc.make_episode_event(stamp, "start", {"episode": self.episode, "steps": 0}))
-        self._publish_step(stamp, 0.0, False, False, info)
+        self._publish_step(stamp, 0.0, False, False, info, None)
 
-    def _publish_step(self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict) -> None:
+    def _publish_step(
+        self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict, applied: int | None
+    ) -> None:
         self.pub_clock.publish(mc.make_clock(stamp))
-        self.pub_reward.publish(mc.make_reward(stamp, reward, terminated, truncated))
+        self.pub_reward.publish(mc.make_reward(stamp, reward, terminated, truncated, applied))
         if not (terminated or truncated):
             self.gate.open(stamp)  # open before publishing: a fast answer must find the step open
             self._sent_at[stamp] = time.perf_counter_ns()
@@ -245,7 +254,7 @@ class BridgeNode(Node):
         if lane is not None and self._lane is not None and lane != self._lane:
             self._ep_lane_changes += 1
         self._lane = lane
-        self._publish_step(stamp, float(reward), bool(terminated), bool(truncated), info)
+        self._publish_step(stamp, float(reward), bool(terminated), bool(truncated), info, int(action))
         done = self.cfg.max_steps > 0 and self.sim_steps >= self.cfg.max_steps
         if terminated or truncated:
             event = info.get("event") or ("time_limit" if truncated else "collision")
@@ -341,6 +350,10 @@ class BridgeNode(Node):
 
     def on_shutdown(self, reason: str) -> None:
         self._publish_diagnostics()
+        # Exiting right after the last publish could drop the final state / episode event for a
+        # subscriber that has not acknowledged it yet: wait (bounded) for the reliable acks.
+        for pub in (self.pub_reward, self.pub_state, self.pub_episode, self.pub_diag):
+            pub.wait_for_all_acked(Duration(seconds=2.0))
         summary = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.summary().items()}
         self.get_logger().info(f"stopping ({reason}); bridge summary: {json.dumps(summary, sort_keys=True)}")
         try:

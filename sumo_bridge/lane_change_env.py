@@ -51,12 +51,13 @@ Resets and determinism
 ``reset(seed=s)`` seeds the placement/traffic RNG and SUMO's ``--seed`` (drawn from it), so the
 same seed gives the same trajectory. Ring resets reload the simulation in place with
 ``load`` (a few ms, no new process). Urban resets keep the background traffic running and
-only replace the ego (a full ``load`` + ``urban_warmup_seconds`` happens on ``reset(seed=...)``
-and every ``urban_reload_every`` episodes), because filling a 1 km bridge takes ~100 simulated
-seconds.
+only replace the ego after ``urban_ego_gap_seconds`` (a full ``load`` + ``urban_warmup_seconds``
+happens on ``reset(seed=...)`` and every ``urban_reload_every`` episodes), because filling a 1 km
+bridge takes ~100 simulated seconds. The urban ego gets a fresh id (``env.ego_id``) each episode.
 
 Neighbours come from one context subscription on the ego (lanes -1/0/+1, up- and downstream)
-per step; mean speed from one ID-list read per step.
+per step; the mean speed from per-vehicle speed subscriptions (one read per step); departures
+and collisions from a simulation subscription, so on traci a step is one round trip.
 
 Only one libsumo simulation can live in a process (:mod:`sumo_bridge.sim_backend`): a second
 live env raises :class:`~sumo_bridge.sim_backend.SimulationInUseError`. Run parallel envs in
@@ -163,6 +164,7 @@ class LaneChangeEnv(gym.Env):
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
+            *(["--start", "true", "--quit-on-end", "true"] if cfg.gui else []),
             *cfg.sumo_args,
         ]  # fmt: skip
 
@@ -264,8 +266,9 @@ class LaneChangeEnv(gym.Env):
             nxt = min(((off - s) % lap, edge) for edge, off, _ in normal)[1]
             return nxt, 0.1
 
-        counts = (int(rng.integers(cfg.ring_outer_vehicles[0], cfg.ring_outer_vehicles[1] + 1)) + 1,
-                  int(rng.integers(cfg.ring_inner_vehicles[0], cfg.ring_inner_vehicles[1] + 1)))  # fmt: skip
+        counts = [int(rng.integers(cfg.ring_outer_vehicles[0], cfg.ring_outer_vehicles[1] + 1)),
+                  int(rng.integers(cfg.ring_inner_vehicles[0], cfg.ring_inner_vehicles[1] + 1))]  # fmt: skip
+        counts[cfg.ego_lane] += 1  # the ego is vehicle 0 of its lane
         for lane, n in enumerate(counts):
             if n == 0:
                 continue
@@ -298,7 +301,7 @@ class LaneChangeEnv(gym.Env):
             api.vehicle.remove(self.ego_id)
             self._ego_present = False
         self._episodes_since_load += 1
-        self._warmup(cfg.warmup_seconds)
+        self._warmup(cfg.urban_ego_gap_seconds)
         for _attempt in range(20):
             # a fresh id per attempt: SUMO 1.28 never inserts a vehicle re-added under the id of one
             # removed before its insertion; unique ids also keep logs unambiguous
@@ -407,7 +410,7 @@ class LaneChangeEnv(gym.Env):
             )
             if caused:
                 reward += cfg.reward_collision
-        elif not ego_gone and int(self._points[0, _C["lane"]]) == cfg.target_lane:
+        elif not ego_gone and int(self._points[0, _C["lane"]]) == cfg.target:
             if self._on_target_since is None:
                 changed_now = self._last_change_substep is not None and self._last_change_substep >= self._substep - cfg.decision_interval
                 self._on_target_since = self._last_change_substep + 1 if changed_now else self._substep
@@ -505,7 +508,7 @@ class LaneChangeEnv(gym.Env):
             if gap <= rng_max and (slot not in best or gap < best[slot][0]):
                 best[slot] = (gap, vid, var)
         # rows in POINT_FIELDS order: x y z speed rel_speed gap lane target_lane present slot lane_count length
-        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target_lane, 1.0, 0.0, n_lanes, ego_len]]
+        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
         for slot in range(len(SLOT_NAMES)):
             hit = best.get(slot)
             if hit is None:

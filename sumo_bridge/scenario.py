@@ -36,13 +36,15 @@ class ScenarioConfig:
         40, "environment steps before the episode is truncated (event 'time_limit')", low=1, high=1_000_000
     )
     warmup_seconds: float = param(
-        5.0,
-        "simulated seconds before the first observation (ring: after placing the vehicles at standstill, so "
-        "traffic gets moving; urban: between two egos)",
-        low=0.0,
+        5.0, "ring: simulated seconds after placing the vehicles at standstill, before the first observation", low=0.0
+    )
+    urban_ego_gap_seconds: float = param(
+        1.0, "urban: simulated seconds of traffic between removing one episode's ego and inserting the next", low=0.0
     )
     ego_lane: int = param(0, "lane index the ego starts on (SUMO: 0 = rightmost; ring: 0 = outer lane)", low=0)
-    target_lane: int = param(1, "lane index the ego must reach (ring: 1 = inner lane)", low=0)
+    target_lane: int = param(
+        -1, "lane index the ego must reach; -1 = the network's: ring 1 (inner lane), urban 2 (bridge's left lane)", low=-1
+    )
     ring_outer_vehicles: tuple[int, ...] = param(
         (6, 10), "ring: [min, max] background vehicles placed on the outer lane (lane 0) at reset", low=0
     )
@@ -83,12 +85,23 @@ class ScenarioConfig:
         low=0.0,
     )
     settle_time: float = param(
-        0.5, "seconds the ego must stay on the target lane without a collision before 'success'", low=0.0
+        0.4,
+        "seconds the ego must stay on the target lane without a collision before 'success' (the change itself "
+        "takes one simulation step, so 0.4 s with the default 5 x 0.1 s decision gives the +100 in the same "
+        "env step as the lane change)",
+        low=0.0,
     )
     sumo_args: tuple[str, ...] = param((), "extra command-line arguments for sumo (e.g. ['--lateral-resolution', '0.8'])")
     observation: ObservationConfig = param(
         default_factory=ObservationConfig, help="normalisation of the observation (sumo_bridge.observation)"
     )
+
+    @property
+    def target(self) -> int:
+        """The target lane index (``target_lane`` with -1 resolved per network)."""
+        if self.target_lane >= 0:
+            return self.target_lane
+        return 1 if self.network == "ring" else 2
 
     @property
     def step_seconds(self) -> float:
@@ -105,12 +118,12 @@ class ScenarioConfig:
             value = getattr(self, name)
             if value >= max_lanes:
                 raise ConfigError(f"{name} = {value!r}, expected a lane index below {max_lanes} on the {self.network} network")
-        if self.ego_lane == self.target_lane:
+        if self.ego_lane == self.target:
             raise ConfigError(f"target_lane = {self.target_lane!r}, expected a lane other than ego_lane ({self.ego_lane})")
         if self.network == "ring":
             lap = 376.9
             for name in ("ring_outer_vehicles", "ring_inner_vehicles"):
-                most = getattr(self, name)[1] + (1 if name == "ring_outer_vehicles" else 0)
+                most = getattr(self, name)[1] + (1 if name == ("ring_outer_vehicles", "ring_inner_vehicles")[self.ego_lane] else 0)
                 if most * self.min_spacing > lap:
                     raise ConfigError(
                         f"{name} = {list(getattr(self, name))!r}, expected at most {int(lap // self.min_spacing)} "
@@ -128,15 +141,12 @@ class ScenarioConfig:
 
     @classmethod
     def urban(cls, **overrides: Any) -> ScenarioConfig:
-        """Defaults of ``der_ros/LaneChangeUrban-v0``: start on the bridge's right lane, reach the left one."""
-        base = {
-            "network": "urban",
-            "ego_lane": 0,
-            "target_lane": 2,
-            "max_episode_steps": 40,
-            "warmup_seconds": 1.0,
-        }
-        return from_dict(cls, {**base, **overrides}, source="urban scenario")
+        """Defaults of ``der_ros/LaneChangeUrban-v0``: start on the bridge's right lane, reach the left one.
+
+        Same as ``ScenarioConfig(network="urban")``: network-specific defaults are resolved from
+        ``network`` (``target``), so the ROS bridge's plain config and the gym id agree.
+        """
+        return from_dict(cls, {"network": "urban", **overrides}, source="urban scenario")
 
 
 def scenario_from_kwargs(

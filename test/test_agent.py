@@ -135,6 +135,20 @@ def test_zero_weights_leave_network_unchanged() -> None:
     assert not all(torch.equal(a, b) for a, b in zip(before, agent.q_net.parameters()))
 
 
+def test_gradient_step_now_and_learning_rate_change() -> None:
+    agent = small_agent()
+    agent.replay = SpyReplay(hand_batch())  # type: ignore[assignment]
+    for group in agent.optimizer.param_groups:  # how the ROS node changes agent.lr at run time
+        group["lr"] = 0.0
+    before = [p.detach().clone() for p in agent.q_net.parameters()]
+    loss, _q, abs_td = agent.gradient_step()
+    assert loss > 0 and abs_td > 0 and agent.grad_steps == 1
+    assert all(torch.equal(a, b) for a, b in zip(before, agent.q_net.parameters()))
+    agent.optimizer.param_groups[0]["lr"] = 1e-2
+    agent.gradient_step()
+    assert not all(torch.equal(a, b) for a, b in zip(before, agent.q_net.parameters()))
+
+
 def test_learn_schedule_learning_starts_train_freq_gradient_steps() -> None:
     agent = small_agent(learning_starts=5, train_freq=2, gradient_steps=3, target_update_interval=1000)
     spy = SpyReplay(hand_batch())

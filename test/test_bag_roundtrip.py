@@ -252,3 +252,52 @@ def test_observation_config_from_the_bag_or_the_run(tmp_path: Path) -> None:
     w = BagWriter(tmp_path / "run2" / "bag", custom_data={OBS_CONFIG_KEY: '{"speed_scale": 5.0}'})
     w.close()
     assert observation_config_of(BagReader(tmp_path / "run2" / "bag")) == ObservationConfig(speed_scale=5.0)
+
+
+def test_long_bag_with_late_commands_beyond_several_steps(tmp_path: Path) -> None:
+    """More steps than the reorder window, commands logged 3 steps late: every transition aligns."""
+    from sumo_bridge.observation import POINT_FIELDS, empty_points
+
+    gw = GraphBagWriter(tmp_path / "long", POINT_FIELDS, flush_every_messages=5000)
+    n = 700
+    stamps: list[int] = []
+    for k in range(n):
+        p = empty_points()
+        p[0, 3] = float(k % 17)
+        stamps.append(gw.step(p, float(k), False, k == n - 1, start_episode=0 if k == 0 else None))
+        if k >= 3:
+            gw.command(stamps[k - 3], (k - 3) % 3)
+        gw.next_stamp()
+    for j in range(n - 3, n - 1):  # the remaining commands (none for the final, truncated state)
+        gw.command(stamps[j], j % 3)
+    gw.close()
+    tr = build_transitions(BagReader(tmp_path / "long"))
+    assert len(tr) == n - 1 and tr.skipped == {}
+    assert tr.actions.tolist() == [k % 3 for k in range(n - 1)]
+    assert tr.rewards.tolist() == [float(k) for k in range(1, n)]
+    assert tr.stamps_ns.tolist() == stamps[:-1]
+    assert tr.truncated.tolist() == [False] * (n - 2) + [True]
+
+
+def test_bare_mcap_from_mcap_ros2_support_works_with_info_and_plot(tmp_path: Path) -> None:
+    """An .mcap written by mcap-ros2-support (no metadata.yaml, no QoS) with two graph topics."""
+    from mcap_ros2.writer import Writer
+
+    f = tmp_path / "bare.mcap"
+    reward_def = ("std_msgs/Header header\ngeometry_msgs/Vector3 vector\n" + "=" * 80 + "\nMSG: std_msgs/Header\n"
+                  "builtin_interfaces/Time stamp\nstring frame_id\n" + "=" * 80 + "\nMSG: builtin_interfaces/Time\n"
+                  "int32 sec\nuint32 nanosec\n" + "=" * 80 + "\nMSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n")
+    with open(f, "wb") as fh:
+        w = Writer(fh)
+        schema = w.register_msgdef("geometry_msgs/msg/Vector3Stamped", reward_def)
+        for k in range(8):  # two episodes of 4 states, the 4th truncated
+            msg = {"header": {"stamp": {"sec": k, "nanosec": 0}, "frame_id": ""},
+                   "vector": {"x": float(k % 4), "y": 0.0, "z": 1.0 if k % 4 == 3 else 0.0}}
+            w.write_message("/reward", schema, msg, log_time=k * 1_000_000_000, publish_time=k)
+        w.finish()
+    info = bag_info(f)
+    assert not info["metadata_yaml"] and info["roles"] == {"reward": "/reward"}
+    assert info["topics"][0]["count"] == 8 and info["topics"][0]["qos_text"] == "-"
+    assert [(e["steps"], e["return"], e["outcome"]) for e in info["episodes"]] == [(3, 6.0, "time_limit")] * 2
+    assert info["duration_s"] == 7.0
+    assert [p.name for p in plot_bags([f], tmp_path / "plots")] == ["returns.png", "outcomes.png", "topic_rates.png"]

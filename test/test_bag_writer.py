@@ -28,6 +28,7 @@ from der_ros.bag.writer import (
     BagWriterError,
     jazzy_typestore,
     read_episode_summary,
+    recover_bag,
 )
 
 TS = jazzy_typestore()
@@ -255,6 +256,15 @@ def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path) -> None:
     n_marks = len(streamed) - len(strings)
     assert [e["episode"] for e in read_episode_summary(bag)] == list(range(n_marks))  # summary = flushed marks
     assert meta["custom_data"]["der_ros/episode_events"] == str(n_marks)
+    # recover_bag makes a finalised copy that rosbags and the seeking mcap reader accept
+    fixed = tmp_path / "fixed"
+    assert recover_bag(bag, fixed) == flushed
+    with Reader(fixed) as r:
+        got = [(c.topic, t, bytes(d)) for c, t, d in r.messages()]
+    assert got == [(("/s" if m.channel_id == streamed[0].channel_id else "/episode"), m.log_time, m.data)
+                   for m in streamed]
+    assert read_episode_summary(fixed) == read_episode_summary(bag)
+    assert read_metadata(fixed)["custom_data"][FINALIZED_KEY] == "true"
     with open(bag / "killed_0.mcap", "rb") as f:  # a seeking reader needs the footer
         with pytest.raises(Exception):  # noqa: B017 - any error type: the file has no footer
             list(make_reader(f).iter_messages())

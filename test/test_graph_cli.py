@@ -110,14 +110,15 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # step keys t_k, in order
 
 
-def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Path, sig: int) -> None:
     run_dir = tmp_path / "run"
     proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
     try:
         bag = run_dir / "bag"
         wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 20, 120,
                    "states in the bag", proc)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, _ = proc.communicate(timeout=60)
     finally:
         reap(proc, run_dir)

@@ -101,6 +101,15 @@ def test_reward_roundtrip_and_validation():
     assert isinstance(m, Vector3Stamped)
 
 
+def test_applied_action_in_reward_frame_id():
+    assert mc.parse_applied_action(wire(mc.make_reward(0, 0.0, False, False))) is None
+    msg = wire(mc.make_reward(5, 1.0, False, False, applied_action=2))
+    assert mc.parse_applied_action(msg) == 2 and mc.parse_reward(msg) == (5, 1.0, False, False)
+    msg.header.frame_id = mc.APPLIED_ACTION_PREFIX + "x"
+    with pytest.raises(ValueError, match="applied_action"):
+        mc.parse_applied_action(msg)
+
+
 def test_command_roundtrip():
     msg = wire(mc.make_command(3 * 10**8, 2, sender="agent#1"))
     assert isinstance(msg, Joy)

@@ -113,12 +113,16 @@ def test_rejects_invalid_values_with_reason_and_keeps_old(node):
 
 
 def test_bad_startup_override_raises(node):
+    from rclpy.node import Node
     from rclpy.parameter import Parameter
 
     # what `-p sec.lo:=5.0` on the command line does
-    node._parameter_overrides["sec.lo"] = Parameter("sec.lo", value=5.0)
-    with pytest.raises(ConfigError, match="lo = 5.0"):
-        ConfigParameters(node, {"sec": Outer()})
+    bad = Node("params_test_bad", context=node.context, parameter_overrides=[Parameter("sec.lo", value=5.0)])
+    try:
+        with pytest.raises(ConfigError, match="lo = 5.0"):
+            ConfigParameters(bad, {"sec": Outer()})
+    finally:
+        bad.destroy_node()
 
 
 def test_unknown_mutable_name_is_an_error(node):

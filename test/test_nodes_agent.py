@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -53,6 +54,7 @@ class FakeBridge:
             and node.count_publishers("lane_change_cmd"),
             30, what="agent to join the graph", procs=[self.proc],
         )
+        time.sleep(0.3)  # the agent's readers may match our writers a moment after we see them
 
     def points(self) -> np.ndarray:
         pts = empty_points()

@@ -90,8 +90,10 @@ def test_publishes_contract_layout_and_lane_change_moves_the_ego(ros_graph):  # 
     # change left (towards lane 1, the inner lane): visible in the very next state
     a.send(3, 1)
     assert a.lane(4) == 1
-    r4 = next(m for m in a.rewards if mc.time_to_ns(m.header.stamp) == 4 * STEP_NS)
-    assert math.isfinite(r4.vector.x)
+    r4 = wait_for(lambda: next((m for m in list(a.rewards) if mc.time_to_ns(m.header.stamp) == 4 * STEP_NS), None),
+                  5, what="reward 4")
+    assert math.isfinite(r4.vector.x) and mc.parse_applied_action(r4) == 1
+    assert mc.parse_applied_action(r0) is None  # an episode's first state follows no action
     # /clock carries the same step keys (best effort: some may be dropped, never out of order)
     clocks = [mc.time_to_ns(c.clock) for c in list(a.clocks)]
     assert clocks and clocks == sorted(clocks) and set(clocks) <= {k * STEP_NS for k in range(10)}
@@ -107,6 +109,8 @@ def test_lockstep_late_command_and_duplicate_never_apply_to_another_step(ros_gra
     # no answer to step 0 within the timeout: the default (keep lane) is applied
     time.sleep(1.6 * timeout)
     assert a.lane(1) == 0
+    r1 = next(m for m in list(a.rewards) if mc.time_to_ns(m.header.stamp) == STEP_NS)
+    assert mc.parse_applied_action(r1) == 0  # the reward says which action was really applied
     # the late answer to step 0 asks for a lane change; it must not be applied to step 1
     a.send(0, 1)
     a.send(1, 0)

@@ -183,3 +183,17 @@ def test_with_real_dqn_agent_buffers_fill_and_learning_starts():
         got.update(L.learn())
     assert len(agent.replay) == L.counters["transitions"] == 36  # 4 episodes x 9 transitions
     assert "losses/td_loss" in got and np.isfinite(got["losses/td_loss"])
+
+
+def test_applied_action_reported_by_the_bridge_replaces_ours():
+    agent = FakeAgent(actions=(2,))
+    L = OnlineLearner(agent)
+    L.on_reward(0, 0.0, False, False)  # episode start: nothing applied yet
+    L.on_state(0, obs(0))
+    # our answer (2) missed the timeout: the bridge applied its default 0 and says so
+    L.on_reward(S, 1.0, False, False, applied_action=0)
+    L.on_state(S, obs(1))
+    L.on_reward(2 * S, 1.0, False, False, applied_action=2)  # this one was on time
+    L.on_state(2 * S, obs(2))
+    assert [o[1] for o in agent.observed] == [0, 2]
+    assert L.counters["overridden_actions"] == 1

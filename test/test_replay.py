@@ -157,8 +157,8 @@ class TestUniform:
             buf.add(np.zeros((8, 8), np.uint8), 0, 0.0, np.zeros((8, 8), np.uint8), False, False)
 
     def test_memory_estimate_and_error(self):
-        assert storage_bytes(1000, (84, 84, 4), np.uint8) == 1000 * (2 * 84 * 84 * 4 + 14 + 24)
-        assert storage_bytes(10, (4,), np.float32) == 10 * (2 * 16 + 14 + 24)
+        assert storage_bytes(1000, (84, 84, 4), np.uint8) == 1000 * (2 * 84 * 84 * 4 + 14 + 40)
+        assert storage_bytes(10, (4,), np.float32) == 10 * (2 * 16 + 14 + 40)
         cfg = ReplayConfig(kind="uniform", capacity=1_000_000)
         with pytest.raises(ReplayMemoryError) as exc:
             make_replay(cfg, (84, 84, 4), np.uint8, 32, 0, available_bytes=10 * 2**30)
@@ -399,3 +399,31 @@ def test_numba_and_numpy_kernels_agree_bitwise(kind, eq3_sum):
             np.testing.assert_array_equal(fa, fb)
     for key in sa:
         np.testing.assert_array_equal(sa[key], sb[key], err_msg=key)
+
+
+def test_state_dict_copy_flag():
+    buf = UniformReplay(10, (2,), seed=0)
+    fill(buf, 4)
+    copied, viewed = buf.state_dict(), buf.state_dict(copy=False)
+    fill(buf, 2, start=4)
+    assert copied["size"] == 4 and copied["data/rewards"][4] == 0.0  # unaffected by later adds
+    assert viewed["data/rewards"][4] == 4.0  # a view follows the buffer
+
+
+@pytest.mark.parametrize("kind", ["uniform", "per", "der"])
+def test_add_one_by_one_equals_add_batch(kind):
+    """The per-step add() fast path leaves exactly the state add_batch() leaves."""
+    cfg = ReplayConfig(kind=kind, capacity=7, h2_capacity=8, h2_min_size=2)
+    one, many = (make_replay(cfg, (2,), np.float32, 2, seed=1) for _ in range(2))
+    ids = np.arange(11)
+    obs = np.stack([ids, -ids], axis=1).astype(np.float64)  # float64 in, float32 stored
+    for i in ids:
+        one.add(obs[i], int(i % 3), float(i), obs[i] + 1, bool(i % 4 == 0), bool(i % 5 == 0))
+    many.add_batch(obs, ids % 3, ids.astype(float), obs + 1, ids % 4 == 0, ids % 5 == 0)
+    sa, sb = one.state_dict(), many.state_dict()
+    for key in sa:
+        np.testing.assert_array_equal(sa[key], sb[key], err_msg=key)
+    with pytest.raises(ValueError, match="reward"):
+        one.add(obs[0], 0, float("nan"), obs[0], False, False)
+    with pytest.raises(ValueError, match="shape"):
+        one.add(np.zeros(3), 0, 0.0, np.zeros(3), False, False)

@@ -70,3 +70,23 @@ def test_build_failure_reports_netconvert_stderr(tmp_path: Path, monkeypatch: py
     with pytest.raises(NetworkBuildError, match="nowhere") as exc:
         build_network("ring", cache_dir=tmp_path / "cache")
     assert "netconvert failed" in str(exc.value) and "stderr" in str(exc.value)
+
+
+def test_missing_sumo_binary_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sumolib, "checkBinary", lambda name: f"/nonexistent/{name}")
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(network_build.SumoNotFoundError, match="'sumo-gui' not found.*eclipse-sumo"):
+        network_build.sumo_binary("sumo-gui")
+
+
+def test_cache_falls_back_to_user_dir_when_package_is_read_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    package_build = network_build.PACKAGE_DIR / "networks" / "build"
+    real_writable = network_build._writable
+    # a read-only install: the package's build folder cannot be written (chmod does not stop root)
+    monkeypatch.setattr(network_build, "_writable", lambda path: path != package_build and real_writable(path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.delenv("DER_ROS_NETWORK_CACHE", raising=False)
+    root = network_build.cache_root()
+    assert root == tmp_path / "xdg" / "der_ros" / "networks"
+    built = build_network("ring", cache_dir=root)
+    assert built.net_file.is_file() and built.net_file.is_relative_to(tmp_path)

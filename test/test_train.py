@@ -146,7 +146,8 @@ def test_runner_resume_continues_exactly(tmp_path: Path) -> None:
 
 def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    sets = [f"{k}={json.dumps(v)}" for k, v in small_overrides(300, **{"train.tensorboard": True}).items()]
+    extra = {"train.tensorboard": True, "train.eval_interval": 150, "train.eval_episodes": 2}
+    sets = [f"{k}={json.dumps(v)}" for k, v in small_overrides(300, **extra).items()]
     argv = ["train", "--config", str(CARTPOLE), "--replay", "der", "--lam", "0.9", "--seed", "3"]
     argv += ["--run-dir", str(run_dir), "--agent-lr", "0.001"]
     for s in sets:
@@ -165,8 +166,13 @@ def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
         "losses/q_values",
         "replay/h2_fraction",
         "replay/h2_weight_mean",
+        "charts/eval_return",
+        "charts/episodic_return",
+        "charts/episodic_length",
     ):
         assert name in names
+    evals = [r for r in read_csv(run_dir / "metrics.csv") if r["name"] == "charts/eval_return"]
+    assert [int(r["step"]) for r in evals] == [150, 300] and all(float(r["value"]) >= 8 for r in evals)
     episodes = read_csv(run_dir / "episodes.csv")
     assert episodes and all(float(e["return"]) == float(e["length"]) for e in episodes)  # CartPole: +1 per step
     assert int(episodes[-1]["step"]) <= 300
@@ -272,3 +278,16 @@ def test_make_env_kinds() -> None:
     cp.close()
     with pytest.raises(gym.error.Error):
         make_env("NoSuchEnv-v0", seed=0)
+
+
+def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
+    """`der_ros/...` ids go through make_env (importing sumo_bridge); a short DER run on the ring."""
+    cfg = load_experiment_config(
+        None, small_overrides(150, **{"env.id": "der_ros/LaneChangeRing-v0", "agent.learning_starts": 50})
+    )
+    summary = train(cfg, run_dir=tmp_path / "ring")
+    assert summary.steps == 150
+    names = {r["name"] for r in read_csv(tmp_path / "ring" / "metrics.csv")}
+    assert {"losses/td_loss", "replay/h2_size"} <= names
+    agent = DQNAgent.load(tmp_path / "ring" / "checkpoint.pt")
+    assert agent.n_actions == 3 and len(agent.obs_shape) == 1 and agent.replay_cfg.kind == "der"

@@ -202,6 +202,17 @@ class DQNAgent:
             not_done = 1.0 - terminated.float()
             return rewards + self.cfg.gamma * not_done * next_v
 
+    def gradient_step(self) -> tuple[float, float, float]:
+        """One update now, ignoring the schedule (offline training from recorded transitions).
+
+        Returns (TD loss, mean Q(s, a), mean |delta|) of the batch.
+        """
+        if len(self.replay) < self.cfg.batch_size:
+            raise ValueError(
+                f"replay holds {len(self.replay)} transitions, fewer than batch_size {self.cfg.batch_size}"
+            )
+        return self._gradient_step()
+
     def _gradient_step(self) -> tuple[float, float, float]:
         batch = self.replay.sample(self.cfg.batch_size)
         obs = self._tensor(batch.obs)
@@ -233,8 +244,9 @@ class DQNAgent:
 
         td_np = td.detach().cpu().numpy().astype(np.float32, copy=False)
         self.replay.update_priorities(batch.indices, td_np)
-        q_np = q.detach().cpu().numpy()
-        return float(loss.item()), float(q_np.mean()), float(np.abs(td_np).mean())
+        n = td_np.shape[0]
+        q_sum = float(np.add.reduce(q.detach().cpu().numpy()))  # (np.mean costs ~4x more per call)
+        return float(loss.item()), q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
 
     @torch.no_grad()
     def update_target(self) -> None:
@@ -283,7 +295,7 @@ class DQNAgent:
         self.q_net.load_state_dict(state["q_net"])
         self.target_net.load_state_dict(state["target_net"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.replay.load_state_dict(state["replay"])
+        self.replay.load_state_dict(_unpack_arrays(state["replay"]))
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         self.steps = int(state["steps"])
@@ -298,7 +310,9 @@ class DQNAgent:
         """
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        payload = {"agent": self.state_dict(), "extra": extra or {}}
+        state = self.state_dict()
+        state["replay"] = _pack_arrays(state["replay"])
+        payload = {"agent": state, "extra": extra or {}}
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
         try:
             with open(tmp, "wb") as fh:
@@ -332,6 +346,30 @@ class DQNAgent:
     def load(cls, path: str | os.PathLike[str], device: str | torch.device = "cpu") -> DQNAgent:
         """Load an agent written by :meth:`save` (also a ``der train`` checkpoint)."""
         return cls.from_state_dict(read_checkpoint(path, device)["agent"], device=device)
+
+
+def _pack_arrays(state: dict[str, Any]) -> dict[str, Any]:
+    """Numeric numpy arrays -> zero-copy torch tensors, which torch.save streams as storages.
+
+    Pickled in-band, a numpy array is first copied into torch.save's in-memory pickle: for the
+    2.8 GB Atari replay that would be one more full copy at every checkpoint.
+    """
+    tensors: dict[str, torch.Tensor] = {}
+    other: dict[str, Any] = {}
+    for key, value in state.items():
+        if isinstance(value, np.ndarray) and value.dtype.kind in "biuf" and value.dtype != np.uint16:
+            tensors[key] = torch.from_numpy(value if value.flags.c_contiguous else value.copy())
+        else:
+            other[key] = value
+    return {"__packed__": True, "tensors": tensors, "other": other}
+
+
+def _unpack_arrays(state: dict[str, Any]) -> dict[str, Any]:
+    if not state.get("__packed__"):
+        return state
+    out = dict(state["other"])
+    out.update({k: t.cpu().numpy() for k, t in state["tensors"].items()})
+    return out
 
 
 def read_checkpoint(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> dict[str, Any]:

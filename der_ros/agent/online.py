@@ -26,6 +26,9 @@ Robustness (all counted in :attr:`OnlineLearner.counters`):
   (s, a) is discarded instead of being joined to the wrong next state;
 * with ``step_ns`` known (stamps are t_k = k * step_ns), a step lost on *both* topics is a gap
   too (without it such a loss cannot be told from normal succession);
+* the bridge reports in each reward which action it applied (``applied_action``); when that is
+  not the action this learner sent (the command missed the bridge's timeout and the default was
+  applied), the transition stores the applied one: ``overridden_actions``;
 * at most ``max_buffered`` incomplete stamps are kept; the oldest is evicted (``evicted``).
 
 Paused (evaluation mode): act greedily (``explore=False``), store nothing and never learn;
@@ -98,7 +101,7 @@ class Decision:
 @dataclass
 class _Half:
     obs: np.ndarray | None = None
-    reward: tuple[float, bool, bool] | None = None
+    reward: tuple[float, bool, bool, int | None] | None = None
 
 
 @dataclass
@@ -155,6 +158,7 @@ class OnlineLearner:
                 "transitions",
                 "actions",
                 "learn_steps",
+                "overridden_actions",
             )
         }
 
@@ -172,8 +176,15 @@ class OnlineLearner:
         half.obs = np.asarray(self.encode(payload))
         return self._drain()
 
-    def on_reward(self, stamp_ns: int, reward: float, terminated: bool, truncated: bool) -> list[Decision]:
-        """A ``reward`` message arrived; returns the decisions of every step it completed."""
+    def on_reward(
+        self, stamp_ns: int, reward: float, terminated: bool, truncated: bool, applied_action: int | None = None
+    ) -> list[Decision]:
+        """A ``reward`` message arrived; returns the decisions of every step it completed.
+
+        ``applied_action`` is the action the bridge reports it applied in the step that led to
+        this state (None if it does not say); it replaces this learner's own action in the
+        transition when they differ (a command that missed the bridge's timeout).
+        """
         self.counters["rewards"] += 1
         if self._is_stale(stamp_ns):
             self.counters["stale_reward"] += 1
@@ -182,7 +193,7 @@ class OnlineLearner:
         if half.reward is not None:
             self.counters["duplicate_reward"] += 1
             return []
-        half.reward = (float(reward), bool(terminated), bool(truncated))
+        half.reward = (float(reward), bool(terminated), bool(truncated), applied_action)
         return self._drain()
 
     def set_paused(self, paused: bool) -> None:
@@ -251,7 +262,9 @@ class OnlineLearner:
             half = self._buf.pop(t)
             out.append(self._complete(t, half.obs, *half.reward))
 
-    def _complete(self, t: int, obs: np.ndarray, reward: float, terminated: bool, truncated: bool) -> Decision:
+    def _complete(
+        self, t: int, obs: np.ndarray, reward: float, terminated: bool, truncated: bool, applied: int | None
+    ) -> Decision:
         self._last_completed = t
         self.env_steps += 1
         stored = False
@@ -260,6 +273,9 @@ class OnlineLearner:
             self._pending = None
         if self._pending is not None:
             prev_obs, prev_action, _ = self._pending
+            if applied is not None and applied != prev_action:
+                self.counters["overridden_actions"] += 1  # the bridge applied its default instead
+                prev_action = applied
             ep = self._episode
             assert ep is not None
             ep.ret += reward

@@ -37,12 +37,21 @@ class FlatAdam:
             raise ValueError(f"params {tuple(params.shape)} and grads {tuple(grads.shape)} differ in shape")
         self.params = params
         self.grads = grads
-        self.lr = float(lr)
+        #: torch.optim-style groups, so callers can change the rate with ``group["lr"] = x``
+        self.param_groups: list[dict[str, Any]] = [{"params": [params], "lr": float(lr)}]
         self.beta1, self.beta2 = float(betas[0]), float(betas[1])
         self.eps = float(eps)
         self.exp_avg = torch.zeros_like(params)
         self.exp_avg_sq = torch.zeros_like(params)
         self.step_count = 0
+
+    @property
+    def lr(self) -> float:
+        return float(self.param_groups[0]["lr"])
+
+    @lr.setter
+    def lr(self, value: float) -> None:
+        self.param_groups[0]["lr"] = float(value)
 
     @torch.no_grad()
     def step(self) -> None:

@@ -17,6 +17,7 @@ the bag ends in.
 
 from __future__ import annotations
 
+import heapq
 import logging
 from array import array
 from collections.abc import Callable, Iterator
@@ -142,6 +143,7 @@ def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
     t_state, t_reward, t_cmd = roles.get("state"), roles.get("reward"), roles.get("lane_change_cmd")
     wanted = None if read_all else {t for t in (t_state, t_reward, t_cmd) if t}
     pending: dict[int, Step] = {}
+    order: list[int] = []  # heap of the pending stamps
     last_emitted = -1
 
     def get(stamp: int) -> Step | None:
@@ -151,6 +153,7 @@ def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
         s = pending.get(stamp)
         if s is None:
             s = pending[stamp] = Step(stamp)
+            heapq.heappush(order, stamp)
         return s
 
     for msg in reader.messages(wanted):
@@ -180,11 +183,11 @@ def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
         else:
             continue
         if len(pending) > window:
-            k = min(pending)
+            k = heapq.heappop(order)
             last_emitted = k
             yield pending.pop(k)
-    for k in sorted(pending):
-        yield pending.pop(k)
+    while order:
+        yield pending.pop(heapq.heappop(order))
 
 
 @dataclass
@@ -259,7 +262,7 @@ class _Segment:
     def __init__(self, first: Step) -> None:
         self.start = first.stamp_ns
         self.end = first.stamp_ns
-        self.n_states = 0
+        self.n_steps = 0  # decision steps seen (a state or a reward message at the stamp)
         self.ret = 0.0
         self.lane_changes = 0
         self.last_lane: float | None = None
@@ -270,10 +273,11 @@ class _Segment:
 
     def add(self, s: Step, first: bool, i_speed: int | None, i_lane: int | None) -> None:
         self.end = s.stamp_ns
+        if s.points is not None or s.reward is not None:
+            self.n_steps += 1
         if s.reward is not None and not first:
             self.ret += s.reward
         if s.points is not None:
-            self.n_states += 1
             ego = s.points[0]
             if i_speed is not None:
                 self.speed_t.append((s.stamp_ns - self.start) / 1e9)
@@ -399,7 +403,7 @@ def _merge(segments: list[_Segment], events: list[tuple[int, str, dict[str, Any]
             ep = vals.get("episode", start[2].get("episode") if start else None)
             summary = EpisodeSummary(
                 index=i, episode=_int_or_none(ep), start_ns=seg.start, end_ns=seg.end,
-                steps=int(vals.get("steps", max(seg.n_states - 1, 0))),
+                steps=int(vals.get("steps", max(seg.n_steps - 1, 0))),
                 ret=float(vals.get("return", seg.ret)),
                 lane_changes=int(vals.get("lane_changes", seg.lane_changes)),
                 outcome=ev, mean_speed=float(vals.get("mean_speed", computed_speed)), source="event",
@@ -408,7 +412,7 @@ def _merge(segments: list[_Segment], events: list[tuple[int, str, dict[str, Any]
             outcome = "terminated" if seg.terminated else "time_limit" if seg.truncated else "incomplete"
             summary = EpisodeSummary(
                 index=i, episode=_int_or_none(start[2].get("episode")) if start else None,
-                start_ns=seg.start, end_ns=seg.end, steps=max(seg.n_states - 1, 0), ret=seg.ret,
+                start_ns=seg.start, end_ns=seg.end, steps=max(seg.n_steps - 1, 0), ret=seg.ret,
                 lane_changes=seg.lane_changes, outcome=outcome, mean_speed=computed_speed, source="steps",
             )
         summary.speed_t = np.asarray(seg.speed_t, dtype=np.float64)

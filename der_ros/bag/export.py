@@ -136,7 +136,10 @@ def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: 
         if s.points is not None:
             if s.fields != POINT_FIELDS:
                 raise BagError(reader.path, None, f"state fields at stamp {s.stamp_ns} are {s.fields}, expected {POINT_FIELDS}")
-            obs = encode_observation(s.points, obs_cfg)
+            try:
+                obs = encode_observation(s.points, obs_cfg)
+            except ValueError as exc:
+                raise BagError(reader.path, None, f"state stamped {s.stamp_ns} ns: {exc}") from None
         if prev is not None and not (prev.terminated or prev.truncated):
             if prev.action is None:
                 skipped["no_command"] += 1

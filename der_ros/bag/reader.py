@@ -631,8 +631,11 @@ class BagReader:
     ) -> Iterator[Message]:
         summary = self._summaries[f]
         schemas: dict[int, tuple[str, str, str]] = {}
-        # channel id -> Connection if its messages are wanted else None
-        keep: dict[int, Connection | None] = {}
+        # channel id -> Connection if its messages are wanted else None. Seeded from the summary
+        # (a writer may declare channels only there); data-section records take precedence.
+        keep: dict[int, Connection | None] = {
+            cid: (c if wanted is None or c.topic in wanted else None) for cid, c in summary.connections.items()
+        }
 
         def add_channel(buf: bytes | memoryview, b0: int, b1: int) -> None:
             cid, sid, topic, menc, meta = _parse_channel(buf, b0, b1)

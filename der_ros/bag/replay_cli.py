@@ -38,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("info", help="topics, counts, duration and the per-episode table of a bag")
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of tables")
+    p.add_argument("--last", type=int, default=None, metavar="N", help="show only the last N episodes in the table")
     p.add_argument("--namespace", default=None, help="graph namespace when a bag holds several (e.g. /run1)")
 
     p = sub.add_parser("plot", help="PNG figures: returns, outcome rates, speeds, DER replay statistics")
@@ -180,10 +181,13 @@ def _run_info(args: argparse.Namespace) -> int:
     _table(("topic", "type", "count", "QoS"), rows)
     if info["episodes"]:
         print()
+        shown = info["episodes"][-args.last:] if args.last else info["episodes"]
+        if len(shown) < len(info["episodes"]):
+            print(f"(last {len(shown)} of {len(info['episodes'])} episodes)")
         rows = [
             (str(e["index"]), "-" if e["episode"] is None else str(e["episode"]), str(e["steps"]), f"{e['return']:.3f}",
              str(e["lane_changes"]), e["outcome"], "-" if e["mean_speed"] is None else f"{e['mean_speed']:.2f}")
-            for e in info["episodes"]
+            for e in shown
         ]
         _table(("#", "episode", "steps", "return", "lane changes", "outcome", "mean speed (m/s)"), rows)
         s = info["summary"]

@@ -20,8 +20,9 @@ Why this design
   most the messages after the last flush. Such a bag has no MCAP footer/summary: streaming
   readers (``mcap.stream_reader.StreamReader``) read it up to the cut, and its
   ``metadata.yaml`` already matches the flushed part (``custom_data: der_ros/finalized:
-  'false'``). :meth:`close` writes the footer, summary and statistics, a ``rosbag2`` MCAP
-  metadata record, and the final ``metadata.yaml`` with ``der_ros/finalized: 'true'``.
+  'false'``); :func:`recover_bag` copies it into a finalised bag (like ``ros2 bag reindex``).
+  :meth:`close` writes the footer, summary and statistics, a ``rosbag2`` MCAP metadata record,
+  and the final ``metadata.yaml`` with ``der_ros/finalized: 'true'``.
 
 Episodes
   The canonical episode record is the graph's ``episode`` topic (``diagnostic_msgs/msg/
@@ -63,6 +64,7 @@ __all__ = [
     "EPISODES_KEY",
     "EPISODES_FILE",
     "read_episode_summary",
+    "recover_bag",
     "qos_profiles_to_yaml",
     "episode_events_from_diagnostic_array",
     "jazzy_typestore",
@@ -610,6 +612,57 @@ def read_episode_summary(bag: str | os.PathLike[str]) -> list[dict[str, Any]]:
         except json.JSONDecodeError:  # the writer was killed mid-line
             break
     return out
+
+
+def recover_bag(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
+    """Copy a killed (unfinalised) bag into a new, finalised one; returns the messages copied.
+
+    Our ``ros2 bag reindex``: every ``.mcap`` of ``src`` is streamed (CRC-checked) up to the cut
+    left by the kill, and the complete records are written to ``dst`` with the same topics, message
+    definitions, offered QoS, stamps and order. ``src`` is not modified. Works on finalised bags too.
+    """
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    src = Path(src)
+    hashes: dict[str, str] = {}
+    custom: dict[str, str] = {}
+    meta_path = src / "metadata.yaml"
+    if meta_path.is_file():
+        info = (yaml.safe_load(meta_path.read_text()) or {}).get("rosbag2_bagfile_information", {})
+        for t in info.get("topics_with_message_count", []):
+            tm = t.get("topic_metadata", {})
+            hashes[tm.get("name", "")] = tm.get("type_description_hash", "")
+        custom = {k: v for k, v in (info.get("custom_data") or {}).items() if not k.startswith("der_ros/")}
+    files = sorted(src.glob("*.mcap"), key=lambda f: (len(f.name), f.name))
+    if not files:
+        raise BagWriterError(f"{src}: no .mcap file to recover")
+    copied = 0
+    with BagWriter(dst, custom_data={**custom, "der_ros/recovered_from": str(src)}) as out:
+        for f in files:
+            schemas: dict[int, Schema] = {}
+            channels: dict[int, Channel] = {}
+            with open(f, "rb") as fh:
+                try:
+                    for rec in StreamReader(fh, validate_crcs=True).records:
+                        if isinstance(rec, Schema):
+                            schemas[rec.id] = rec
+                        elif isinstance(rec, Channel):
+                            channels[rec.id] = rec
+                        elif isinstance(rec, Message):
+                            ch = channels[rec.channel_id]
+                            if not out.has_topic(ch.topic):
+                                sc = schemas[ch.schema_id]
+                                store = jazzy_typestore()
+                                digest = hashes.get(ch.topic) or (
+                                    store.hash_rihs01(sc.name) if sc.name in store.fielddefs else "")
+                                out.add_topic(ch.topic, sc.name, ch.metadata.get("offered_qos_profiles", ""),
+                                              msgdef=sc.data.decode(), rihs01=digest)
+                            out.write(ch.topic, rec.log_time, rec.data, publish_time_ns=rec.publish_time)
+                            copied += 1
+                except Exception as exc:  # the cut: a truncated record, or a chunk whose CRC does not match
+                    log.info("%s: stopped reading at the cut (%s: %s)", f.name, type(exc).__name__, exc)
+    return copied
 
 
 def add_topics(writer: BagWriter, topics: Iterable[tuple[str, str]]) -> None:

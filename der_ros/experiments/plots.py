@@ -68,11 +68,20 @@ def plot_learning_curves(
     return None
 
 
-def metric_on_grid(run: RunResult, name: str, grid: np.ndarray) -> np.ndarray:
-    """A logged metric of one run, linearly interpolated on ``grid`` (NaN outside its range)."""
+def metric_on_grid(run: RunResult, name: str, grid: np.ndarray, valid_if_positive: str | None = None) -> np.ndarray:
+    """A logged metric of one run, linearly interpolated on ``grid`` (NaN outside its range).
+
+    ``valid_if_positive``: another metric logged at the same steps; points where it is <= 0 are
+    dropped first (e.g. the H2 weight, logged as 0 while ``replay/h2_size`` is 0).
+    """
     if name not in run.metrics:
         return np.full(len(grid), np.nan)
     steps, values = run.metrics[name]
+    if valid_if_positive is not None and valid_if_positive in run.metrics:
+        ref_steps, ref_values = run.metrics[valid_if_positive]
+        ok_steps = set(ref_steps[ref_values > 0].tolist())
+        keep = np.fromiter((int(s) in ok_steps for s in steps), dtype=bool, count=steps.size)
+        steps, values = steps[keep], values[keep]
     if steps.size == 0:
         return np.full(len(grid), np.nan)
     out = np.interp(grid, steps.astype(np.float64), values)
@@ -96,10 +105,9 @@ def plot_td_traces(
             continue
         label, color = labels.get(name, name), f"C{i % 10}"
         for ax, metric in ((ax_td, "losses/abs_td_error"), (ax_w, "replay/h2_weight_mean")):
-            values = np.stack([metric_on_grid(r, metric, grid) for r in runs])
-            if metric == "replay/h2_weight_mean":  # undefined (logged as 0) while H2 is empty
-                h2 = np.stack([metric_on_grid(r, "replay/h2_size", grid) for r in runs])
-                values[~(h2 > 0)] = np.nan
+            # the H2 weight is undefined (logged as 0) while H2 is empty
+            valid = "replay/h2_size" if metric == "replay/h2_weight_mean" else None
+            values = np.stack([metric_on_grid(r, metric, grid, valid) for r in runs])
             if not np.isfinite(values).any():
                 continue
             any_weight |= ax is ax_w

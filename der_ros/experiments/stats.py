@@ -43,6 +43,12 @@ class CI:
         half = max(self.high - self.mean, self.mean - self.low)
         return f"{self.mean:.{digits}f} ± {half:.{digits}f}"
 
+    def format_cell(self, digits: int = 2) -> str:
+        """Table cell: 'mean ± half-width [low, high]', or 'n/a' without data."""
+        if math.isnan(self.mean):
+            return "n/a"
+        return f"{self.format(digits)} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
     def format_interval(self, digits: int = 2) -> str:
         if math.isnan(self.mean):
             return "n/a"

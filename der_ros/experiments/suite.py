@@ -152,6 +152,17 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
     return dict(summary.__dict__)
 
 
+def _worker_init() -> None:
+    """Idle workers ignore Ctrl-C (a running training installs its own handler, which stops
+    after the current step and writes a checkpoint); one torch thread per worker."""
+    import signal
+
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(1)
+
+
 def default_jobs() -> int:
     """Worker processes: the number of CPU cores available to this process."""
     try:
@@ -195,7 +206,7 @@ def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[st
     log.info("%d runs to do (%d finished), %d in parallel", len(todo), len(specs) - len(todo), jobs)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     ctx = get_context("spawn")  # fresh interpreters: no forked torch/threads state
-    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx)
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init)
     pending: dict[Future[dict[str, Any]], RunSpec] = {pool.submit(run_one, s): s for s in todo}
     done_count = 0
     try:
@@ -207,11 +218,10 @@ def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[st
                 done_count += 1
                 results.append(summary)
                 log.info(
-                    "[%d/%d] %s %s seed %d: %d steps, %d episodes, mean return %.2f%s",
+                    "[%d/%d] %s seed %d: %d steps, %d episodes, mean return %.2f%s",
                     done_count,
                     len(todo),
-                    spec.group or "",
-                    spec.method.name,
+                    f"{spec.group}/{spec.method.name}" if spec.group else spec.method.name,
                     spec.seed,
                     summary.get("steps", 0),
                     summary.get("episodes", 0),
@@ -270,7 +280,14 @@ def load_result(spec: RunSpec, metric_names: Iterable[str] | None = None) -> Run
 def add_suite_arguments(
     parser: Any, default_config: str, default_out: str, default_seeds: int = 5, default_steps: int | None = None
 ) -> None:
-    """Flags shared by ``der table1/2/3``: config, seeds, steps, jobs, methods, output folders."""
+    """Flags shared by ``der table1/2/3``: config, seeds, steps, jobs, methods, output folders.
+
+    ``default_config`` is relative to the working directory, or else to the source checkout.
+    """
+    if not Path(default_config).is_file():
+        candidate = Path(__file__).resolve().parents[2] / default_config
+        if candidate.is_file():
+            default_config = str(candidate)
     parser.add_argument("--config", default=default_config, help=f"training YAML (default {default_config})")
     parser.add_argument("--seeds", type=int, default=default_seeds, help=f"seeds per method (default {default_seeds})")
     parser.add_argument("--first-seed", dest="first_seed", type=int, default=0, help="seeds are first..first+seeds-1")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -86,8 +87,7 @@ def write_table1(
         ci_max, ci_avg = score_runs(runs)
         paper = PAPER_TABLE1.get(name, (float("nan"), float("nan")))
         lines.append(
-            f"| {labels[name]} | {ci_max.format()} [{ci_max.low:.2f}, {ci_max.high:.2f}] | {paper[0]:.2f} "
-            f"| {ci_avg.format()} [{ci_avg.low:.2f}, {ci_avg.high:.2f}] | {paper[1]:.2f} |"
+            f"| {labels[name]} | {ci_max.format_cell()} | {paper[0]:.2f} | {ci_avg.format_cell()} | {paper[1]:.2f} |"
         )
         for r in runs:
             per_seed.append(
@@ -127,8 +127,11 @@ def run(args: argparse.Namespace) -> int:
     overrides = suite_overrides(args)
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
     t0 = time.perf_counter()
-    run_specs(specs, args.jobs)
+    summaries = run_specs(specs, args.jobs)
     wall = time.perf_counter() - t0
+    if any(s.get("interrupted") for s in summaries):
+        print("der table1: interrupted; runs saved checkpoints, rerun the same command to continue", file=sys.stderr)
+        return 130
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}
     for spec in specs:
         results[spec.method.name].append(load_result(spec, TD_METRICS))

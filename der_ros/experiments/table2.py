@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -78,7 +79,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def default_atari_jobs(specs: Sequence[RunSpec]) -> int:
-    """Cores, but no more runs than fit in ~80% of the available memory (replay dominates)."""
+    """Cores, but no more runs than fit in ~80% of the available memory.
+
+    Per run: the replay (obs + next_obs frames of H1 and H2) twice -- a checkpoint holds a copy of
+    it while it is written -- plus ~1.5 GB for torch and the emulator.
+    """
     import psutil
 
     from der_ros.experiments.suite import _resolve
@@ -88,7 +93,8 @@ def default_atari_jobs(specs: Sequence[RunSpec]) -> int:
     cfg = _resolve(specs[0])
     frame = cfg.env.frame_stack * cfg.env.screen_size * cfg.env.screen_size
     h2 = cfg.replay.h2_capacity or 100 * cfg.agent.batch_size
-    per_run = 2 * frame * (cfg.replay.capacity + h2) + 1_500_000_000  # obs + next_obs, + torch/ALE
+    replay_bytes = 2 * frame * (cfg.replay.capacity + h2)
+    per_run = 2 * replay_bytes + 1_500_000_000
     fit = int(0.8 * psutil.virtual_memory().available // per_run)
     return max(1, min(default_jobs(), fit))
 
@@ -116,8 +122,11 @@ def run(args: argparse.Namespace) -> int:
         specs += plan_runs(args.config, methods, seeds, args.out, {**base, "env.id": env_id}, group=_game_key(game))
     jobs = args.jobs or default_atari_jobs(specs)
     t0 = time.perf_counter()
-    run_specs(specs, jobs)
+    summaries = run_specs(specs, jobs)
     wall = time.perf_counter() - t0
+    if any(s.get("interrupted") for s in summaries):
+        print("der table2: interrupted; runs saved checkpoints, rerun the same command to continue", file=sys.stderr)
+        return 130
 
     labels = {m.name: m.label for m in methods}
     results: dict[str, dict[str, list[RunResult]]] = {g: {m.name: [] for m in methods} for g in games}
@@ -144,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _cell(ci: CI) -> str:
-    return f"{ci.format()} [{ci.low:.2f}, {ci.high:.2f}]"
+    return ci.format_cell()
 
 
 def _write_table2(

@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -277,6 +278,10 @@ def _plots(bag: Path, returns: list[float], out_dir: Path) -> list[Path]:
     return _fallback_plot(returns, out_dir)
 
 
+def _term_as_interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise SystemExit("der graph: --steps must be >= 1")
@@ -297,8 +302,9 @@ def run(args: argparse.Namespace) -> int:
           file=sys.stderr, flush=True)
     monitor = None
     progress = None
-    outcome: RunOutcome
+    outcome: RunOutcome | None = None
     t0 = time.monotonic()
+    old_term = signal.signal(signal.SIGTERM, _term_as_interrupt)  # SIGTERM = Ctrl-C: stop in order
     try:
         from der_ros.graph.monitor import GraphMonitor  # imports rclpy
 
@@ -320,12 +326,16 @@ def run(args: argparse.Namespace) -> int:
 
             outcome = sup.supervise(on_tick=tick, poll_interval=0.25)
     finally:
+        if outcome is None:  # an unexpected error: never leave nodes behind
+            sup.stop_all()
+        signal.signal(signal.SIGTERM, old_term)
         if progress is not None:
             progress.close()
         snap = monitor.snapshot() if monitor is not None else None
         if monitor is not None:
             monitor.close()
         lease.release()
+    assert outcome is not None  # set on every path that does not raise
     wall = time.monotonic() - t0
     snap = _snapshot_from_bag(run_dir / "bag", snap)
     bridge = _bridge_summary(run_dir / "logs")
@@ -421,8 +431,8 @@ def _report(outcome: RunOutcome, snap: Any, run_dir: Path, wall: float, args: ar
         avg = snap.mean_return(10)
         rows = [
             ("scenario / replay", f"{args.scenario} / {_replay_text(params)}"),
-            ("decision steps", f"{snap.steps} in {wall:.0f} s wall"
-             + (f" (bridge: {bridge['steps_per_s']:.0f} steps/s once running)" if "steps_per_s" in bridge else "")),
+            ("decision steps", f"{snap.steps} in {wall:.0f} s"
+             + (f" (bridge {bridge['steps_per_s']:.0f}/s once running)" if "steps_per_s" in bridge else "")),
             ("episodes", str(snap.episodes)),
             ("return (mean of last 10)", f"{avg:+.2f}" if avg is not None else "-"),
             ("success / collision / time limit",

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
@@ -99,6 +100,8 @@ class AgentNode(Node):
         from sumo_bridge.observation import empty_points, encode_observation
 
         self.finished = False
+        #: after SIGINT/SIGTERM, handle the messages already queued for this long before the final save
+        self.drain_seconds = 0.3
         self._params = ConfigParameters(self, parameter_sections(), mutable=MUTABLE, on_change=self._on_param_change)
         self.cfg: AgentNodeConfig = self._params.get("")
         torch.set_num_threads(self.cfg.torch_threads)
@@ -153,9 +156,9 @@ class AgentNode(Node):
 
         The first gradient step of a fresh process compiles (or loads from cache) the replay's
         numba kernels and builds torch's autograd state: up to seconds on a loaded machine, during
-        which a lockstep bridge would time out and apply its default action while this agent
-        stores its own. Running them here, before any subscription exists, keeps that out of the
-        graph (the bridge waits for the agent to appear).
+        which a lockstep bridge would time out and drive the ego with its default action instead of
+        the agent's. Running them here, before any subscription exists, keeps that out of the graph
+        (the bridge waits for the agent to appear).
         """
         t0 = time.perf_counter()
         batch = self.agent.cfg.batch_size
@@ -190,10 +193,13 @@ class AgentNode(Node):
     def _on_reward(self, msg: Vector3Stamped) -> None:
         try:
             stamp, reward, terminated, truncated = mc.parse_reward(msg)
+            applied = mc.parse_applied_action(msg)
+            if applied is not None and not 0 <= applied < self.cfg.n_actions:
+                raise ValueError(f"reward applied_action = {applied}, expected 0..{self.cfg.n_actions - 1}")
         except ValueError as exc:
             self._reject("reward", exc)
             return
-        self._handle(self.learner.on_reward(stamp, reward, terminated, truncated))
+        self._handle(self.learner.on_reward(stamp, reward, terminated, truncated, applied))
 
     def _handle(self, decisions: list[Any]) -> None:
         if not decisions:
@@ -298,6 +304,8 @@ class AgentNode(Node):
 
     def on_shutdown(self, reason: str) -> None:
         self._publish_metrics(None, {})  # final counters for the recorder / tests
+        for pub in (self.pub_cmd, self.pub_metrics):  # let subscribers acknowledge the last messages
+            pub.wait_for_all_acked(Duration(seconds=2.0))
         try:
             self.save()
         except OSError as exc:

@@ -39,6 +39,8 @@ __all__ = [
     "odometry_pose",
     "make_reward",
     "parse_reward",
+    "parse_applied_action",
+    "APPLIED_ACTION_PREFIX",
     "make_command",
     "parse_command",
     "make_episode_event",
@@ -171,10 +173,22 @@ def odometry_pose(msg: Odometry) -> tuple[int, float, float, float, float]:
 
 
 # -- reward ---------------------------------------------------------------------------------------
-def make_reward(stamp_ns: int, reward: float, terminated: bool, truncated: bool, frame_id: str = "") -> Vector3Stamped:
-    """``reward`` message: x = reward on arriving in the state stamped ``stamp_ns``, y/z = flags."""
+#: ``reward.header.frame_id`` prefix naming the action the bridge applied to reach this state.
+APPLIED_ACTION_PREFIX = "applied_action="
+
+
+def make_reward(
+    stamp_ns: int, reward: float, terminated: bool, truncated: bool, applied_action: int | None = None
+) -> Vector3Stamped:
+    """``reward`` message: x = reward on arriving in the state stamped ``stamp_ns``, y/z = flags.
+
+    ``applied_action`` (the action the bridge actually applied in the step that led here: the
+    agent's command, or the default after a timeout) goes into ``header.frame_id`` as
+    ``applied_action=<a>``; empty for an episode's first state.
+    """
     msg = Vector3Stamped()
-    msg.header = _header(stamp_ns, frame_id)
+    frame = "" if applied_action is None else f"{APPLIED_ACTION_PREFIX}{int(applied_action)}"
+    msg.header = _header(stamp_ns, frame)
     msg.vector.x = float(reward)
     msg.vector.y = 1.0 if terminated else 0.0
     msg.vector.z = 1.0 if truncated else 0.0
@@ -190,6 +204,18 @@ def parse_reward(msg: Vector3Stamped) -> tuple[int, float, bool, bool]:
         if flag not in (0.0, 1.0):
             raise ValueError(f"reward {name} = {flag!r}, expected 0 or 1")
     return time_to_ns(msg.header.stamp), float(v.x), v.y == 1.0, v.z == 1.0
+
+
+def parse_applied_action(msg: Vector3Stamped) -> int | None:
+    """The ``applied_action=<a>`` of a reward's frame_id (None when absent); ValueError if garbled."""
+    frame = msg.header.frame_id
+    if not frame.startswith(APPLIED_ACTION_PREFIX):
+        return None
+    text = frame[len(APPLIED_ACTION_PREFIX):]
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"reward frame_id = {frame!r}, expected '{APPLIED_ACTION_PREFIX}<integer>'") from None
 
 
 # -- lane-change command --------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -21,6 +22,8 @@ class ManagedNode(Protocol):
 
     #: set to True by the node when it has finished its work (e.g. ``max_steps`` reached)
     finished: bool
+    # optional ``drain_seconds: float``: keep spinning that long after a signal, to handle
+    # messages already queued, before ``on_shutdown``
 
     def on_shutdown(self, reason: str) -> None: ...
 
@@ -61,6 +64,10 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
         while not node.finished and "reason" not in stop:
             executor.spin_once(timeout_sec=poll_s)
         reason = stop.get("reason", "finished")
+        # Nodes that consume a stream (the agent) handle what is already queued before they stop.
+        drain_until = time.monotonic() + float(getattr(node, "drain_seconds", 0.0))
+        while time.monotonic() < drain_until:
+            executor.spin_once(timeout_sec=0.02)
     except (KeyboardInterrupt, ExternalShutdownException):
         reason = "interrupted"
     finally:

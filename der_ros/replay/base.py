@@ -129,10 +129,13 @@ class ReplayBuffer(ABC):
     def _set_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         """Inverse of :meth:`_arrays`; shapes/dtypes were already checked."""
 
-    def state_dict(self) -> dict[str, np.ndarray]:
+    def state_dict(self, copy: bool = True) -> dict[str, np.ndarray]:
         """Everything needed to continue identically: data, trees, counters, RNG state.
 
-        Arrays are copies, so the dict stays valid while the buffer keeps changing.
+        With ``copy=True`` the arrays are copies, so the dict stays valid while the buffer
+        keeps changing. ``copy=False`` returns views of the buffer's own arrays (no second
+        copy of a multi-GB Atari replay when a checkpoint is written at once); they change
+        with the buffer.
         """
         state = {
             "format": np.array(STATE_FORMAT, dtype=np.int64),
@@ -141,7 +144,7 @@ class ReplayBuffer(ABC):
             "rng": rng_state_to_array(self._rng),
         }
         for key, arr in self._arrays().items():
-            state[key] = np.array(arr, copy=True)
+            state[key] = np.array(arr, copy=True) if copy else arr
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -183,7 +186,7 @@ class ReplayBuffer(ABC):
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **self.state_dict())
+                np.savez(fh, **self.state_dict(copy=False))
                 fh.flush()
                 os.fsync(fh.fileno())
             os.replace(tmp, path)

@@ -27,6 +27,10 @@ removes it from H1 ("transitions move to H_2"); ``'copy'`` leaves it in H1 too.
 With lambda = 0 nothing is promoted: H2 would never be read, and moving would only
 drain H1, while lambda = 0 must be plain uniform DQN ("if lambda equals to 0, means
 uniformly sampling from DQN").
+Note on 'move' with p_promote = 1: every H1 row of every batch leaves H1, about
+(1 - lambda) x B per gradient step, while one transition arrives per env step; H1 then
+holds only transitions no gradient step has used yet (a few), and its share of each
+batch repeats them. ``'copy'`` keeps H1 a full N1 window (the YAML configs use it).
 
 Weight update, eq. 3. The H2 transitions of a batch get "p <- p^{w_t}, where
 w_t = delta_t^2 / sum_n delta_n^2", the sum over the batch's H2 transitions
@@ -45,15 +49,16 @@ so |delta| up to 1e308 cannot overflow delta^2.
 
 Duplicates. H1 and H2 are both sampled with replacement, so a batch may hold one
 transition twice. Every rule is applied once per distinct transition, with the TD error
-of its first row (a DQN step gives all copies the same delta); the eq. 3 sum with
-``eq3_sum='h2'`` runs over the distinct H2 transitions.
+of its last row (a DQN step gives all copies the same delta); the eq. 3 sum with
+``eq3_sum='h2'`` runs over the distinct H2 transitions, with ``'batch'`` over every row.
 
 H1 storage. H1 is a ring of N1 slots written in FIFO order: each new transition takes the
 slot written N1 additions ago, evicting its content if it is still there. So H1 is "the
 last N1 transitions added, minus those moved to H2"; moving leaves a hole that is reused
 when the ring comes round. The live slots are also kept in a dense array (with each
-slot's position in it), so a move is O(1) (swap with the last live slot) and uniform
-sampling draws positions from the dense array: exact over the live transitions.
+slot's position in it), so moving k transitions out costs O(k) (the live slots at the
+end of the dense array fill the holes) and uniform sampling draws positions from the
+dense array: exact over the live transitions.
 
 H2 eviction when full: ``h2_eviction='fifo'`` replaces the oldest entry (ring order);
 ``'min_weight'`` replaces the entries with the smallest weight, i.e. the most replayed
@@ -183,10 +188,14 @@ class DoubleReplay(ReplayBuffer):
     def add_batch(self, obs, actions, rewards, next_obs, terminated, truncated) -> None:  # noqa: D102
         fields = self.h1.convert(obs, actions, rewards, next_obs, terminated, truncated)
         k = fields[0].shape[0]
-        if k > self.capacity:  # only the newest N1 survive the ring
-            fields = tuple(f[k - self.capacity :] for f in fields)
-            self.h1.skip(k - self.capacity)
-            k = self.capacity
+        if k > self.capacity:  # in ring-sized chunks: the same state as k add() calls
+            for start in range(0, k, self.capacity):
+                self._add_converted(tuple(f[start : start + self.capacity] for f in fields))
+            return
+        self._add_converted(fields)
+
+    def _add_converted(self, fields: tuple[np.ndarray, ...]) -> None:
+        k = fields[0].shape[0]
         slots = self.h1.next_slots(k)
         self.h1.write(slots, fields)
         _bump(self.h1_gen, slots)  # invalidates handles to whatever was there
@@ -196,6 +205,16 @@ class DoubleReplay(ReplayBuffer):
             self.h1_live[n : n + new.size] = new
             self.h1_pos[new] = np.arange(n, n + new.size, dtype=np.int64)
             self.h1_size = n + new.size
+
+    def add(self, obs, action, reward, next_obs, terminated, truncated) -> None:  # noqa: D102
+        slot = self.h1.cursor
+        self.h1.put_one(slot, obs, action, reward, next_obs, terminated, truncated)
+        self.h1.next_slot()
+        self.h1_gen[slot] = (self.h1_gen[slot] + 1) & _GEN_MASK
+        if self.h1_pos[slot] < 0:
+            self.h1_live[self.h1_size] = slot
+            self.h1_pos[slot] = self.h1_size
+            self.h1_size += 1
 
     # ------------------------------------------------------------------ sampling
     def sample(self, batch_size: int) -> Batch:
@@ -290,6 +309,9 @@ class DoubleReplay(ReplayBuffer):
         return np.exp(self.h2_logw[: self.h2_size])
 
     def stats(self) -> dict[str, float]:
+        """``replay/size`` (H1 + H2), ``replay/h1_size``, ``replay/h2_size``, ``replay/h2_fraction``
+        (H2 share of the last batch), ``replay/h2_weight_mean`` / ``_max`` (of p over H2; 0 while
+        H2 is empty), ``replay/promoted`` (H1 -> H2 promotions so far)."""
         if self.h2_size:
             leaves = self.h2_tree.leaves[: self.h2_size]
             mean, wmax = float(leaves.mean()), float(leaves.max())

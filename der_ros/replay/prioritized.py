@@ -114,6 +114,14 @@ class PrioritizedReplay(ReplayBuffer):
         self.tree.set(slots, np.full(k, self.max_priority), check=False)
         self.size = min(self.size + k, self.capacity)
 
+    def add(self, obs, action, reward, next_obs, terminated, truncated) -> None:  # noqa: D102
+        slot = self.storage.cursor
+        self.storage.put_one(slot, obs, action, reward, next_obs, terminated, truncated)
+        self.storage.next_slot()
+        self.tree.set(np.array([slot], dtype=np.int64), np.array([self.max_priority]), check=False)
+        if self.size < self.capacity:
+            self.size += 1
+
     def sample(self, batch_size: int) -> Batch:
         check_batch_size(batch_size, self.capacity, self.size)
         beta = self.beta

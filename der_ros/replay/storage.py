@@ -22,9 +22,10 @@ __all__ = ["RingStorage", "ReplayMemoryError", "storage_bytes", "available_memor
 log = logging.getLogger(__name__)
 
 #: per-transition bytes besides the two observations: action int64, reward float32, 2 bools,
-#: plus the int64 bookkeeping (index/position/generation arrays) the samplers keep per slot
+#: plus an upper bound on what the samplers keep per slot (dense index, position, generation,
+#: de-duplication marker, sum-tree leaf + inner nodes, log-weight: at most 5 x 8 bytes)
 _SCALAR_BYTES = 8 + 4 + 1 + 1
-_BOOKKEEPING_BYTES = 3 * 8
+_BOOKKEEPING_BYTES = 5 * 8
 
 
 class ReplayMemoryError(ConfigError):
@@ -179,6 +180,31 @@ class RingStorage:
             out.append(a.astype(dt, copy=False))
         return tuple(out)
 
+    def next_slot(self) -> int:
+        """The next ring slot for one transition, advancing the cursor."""
+        slot = self.cursor
+        self.cursor = (slot + 1) % self.capacity
+        self.num_written += 1
+        return slot
+
+    def put_one(self, slot: int, obs, action, reward, next_obs, terminated, truncated) -> None:
+        """Check and write one transition to ``slot`` (the per-step path of ``add``; no batch arrays)."""
+        for name, arr in (("obs", obs), ("next_obs", next_obs)):
+            a = np.asarray(arr)
+            if a.shape != self.obs_shape:
+                raise ValueError(f"{name} has shape {a.shape}, expected {self.obs_shape}")
+            if a.dtype != self.obs_dtype and not np.can_cast(a.dtype, self.obs_dtype, casting="same_kind"):
+                raise ValueError(f"{name} has dtype {a.dtype}, cannot store it as {self.obs_dtype}")
+        reward = float(reward)
+        if not math.isfinite(reward):
+            raise ValueError(f"reward = {reward}, expected a finite number")
+        self.obs[slot] = obs
+        self.next_obs[slot] = next_obs
+        self.actions[slot] = action
+        self.rewards[slot] = reward
+        self.terminated[slot] = terminated
+        self.truncated[slot] = truncated
+
     def write(self, slots: np.ndarray, fields: tuple[np.ndarray, ...]) -> None:
         """Write converted fields (as returned by :meth:`convert` or :meth:`gather`) to ``slots``."""
         for dst, value in zip(self.arrays_tuple, fields):
@@ -187,23 +213,6 @@ class RingStorage:
     def gather(self, slots: np.ndarray) -> tuple[np.ndarray, ...]:
         """Copies of every field at ``slots`` (in :attr:`FIELDS` order)."""
         return tuple(src.take(slots, axis=0) for src in self.arrays_tuple)
-
-    def gather_into(self, slots: np.ndarray, out: tuple[np.ndarray, ...], start: int) -> None:
-        """Copy the fields at ``slots`` into rows ``start:start+len(slots)`` of ``out`` (one pass each)."""
-        stop = start + len(slots)
-        for src, dst in zip(self.arrays_tuple, out):
-            src.take(slots, axis=0, out=dst[start:stop], mode="clip")
-
-    def empty_batch(self, n: int) -> tuple[np.ndarray, ...]:
-        """Uninitialised output arrays for a batch of ``n`` rows."""
-        return (
-            np.empty((n, *self.obs_shape), dtype=self.obs_dtype),
-            np.empty(n, dtype=np.int64),
-            np.empty(n, dtype=np.float32),
-            np.empty((n, *self.obs_shape), dtype=self.obs_dtype),
-            np.empty(n, dtype=np.bool_),
-            np.empty(n, dtype=np.bool_),
-        )
 
     # state -------------------------------------------------------------------
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:

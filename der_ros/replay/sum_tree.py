@@ -1,25 +1,28 @@
 """SumTree: proportional sampling over non-negative leaf values in O(log N).
 
 Layout. The leaves are split into ``R`` (a power of two, <= ``root_width``) complete
-binary sum trees of equal height ``h``, stored level by level as flat float64 arrays:
-``levels[0]`` holds the R roots, ``levels[h]`` the leaves, and node ``j`` of level ``d``
+binary sum trees of equal height ``h``, stored level by level in one flat float64 array
+``nodes`` (``levels`` are views into it): ``levels[0]`` holds the R roots, ``levels[h]`` the leaves, and node ``j`` of level ``d``
 has children ``2j`` and ``2j + 1`` in level ``d + 1``. Every internal node is always
 recomputed as ``left + right`` from its children (never updated by a delta), so values
 depend only on the leaves: no rounding drift, and saving the leaves is enough to restore
 the tree bit for bit.
 
-Why a forest and not one tree: the work per sample call in numpy is dominated by the
-number of Python-level operations, i.e. by the number of levels. The top of the tree is
-replaced by one ``np.cumsum`` over the R roots plus one ``np.searchsorted`` for all B
-samples, which removes ``log2 R`` levels from both the descent and every update.
+Why a forest and not one tree: in numpy the work per call is dominated by the number of
+Python-level operations, i.e. by the number of levels. The top of the tree is replaced by
+one prefix sum over the R roots plus one binary search per sample, which removes
+``log2 R`` levels from both the descent and every update. The descent and the updates
+run as compiled numba kernels when numba is installed and as vectorised numpy (all B
+samples one level at a time) otherwise, with bit-identical results
+(:mod:`der_ros.replay._kernels`).
 
 Sampling (:meth:`sample`) is stratified as in Schaul et al. (2015): the range
 ``[0, total)`` is cut into B equal segments and one value is drawn in each. Every
 descent is clamped so it can never return a zero-valued leaf (rounding at segment
 boundaries) or a leaf at or past ``limit`` (the filled size of a buffer).
 
-Measured (numpy 2.4, one core): a cumsum costs ~3.5 ns per root and a level ~2 us per
-call, so R = 1024 balances the two; a 50,000-leaf tree then has height 6.
+Measured on the numpy path (numpy 2.4, one core): a cumsum costs ~3.5 ns per root and a
+level ~2 us per call, so R = 1024 balances the two; a 50,000-leaf tree has height 6.
 """
 
 from __future__ import annotations

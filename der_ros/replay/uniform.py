@@ -64,6 +64,11 @@ class UniformReplay(ReplayBuffer):
         self.storage.write(slots, fields)
         self.size = min(self.size + k, self.capacity)
 
+    def add(self, obs, action, reward, next_obs, terminated, truncated) -> None:  # noqa: D102
+        self.storage.put_one(self.storage.next_slot(), obs, action, reward, next_obs, terminated, truncated)
+        if self.size < self.capacity:
+            self.size += 1
+
     def sample(self, batch_size: int) -> Batch:
         check_batch_size(batch_size, self.capacity, self.size)
         slots = self._rng.integers(0, self.size, batch_size, dtype=np.int64)

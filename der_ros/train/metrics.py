@@ -5,7 +5,8 @@ Names are stable and namespaced (STYLE.md): ``charts/episodic_return``, ``charts
 ``losses/abs_td_error``, ``replay/h2_fraction``, ``replay/h2_weight_mean``, ...
 
 ``metrics.csv`` has one row per (step, name): ``step,wall_time,name,value``, so a metric that
-appears later (``replay/h2_size`` once H2 fills) needs no schema change. ``episodes.csv`` has one
+appears later (``replay/h2_size`` once H2 fills) needs no schema change; episode ends add
+``charts/episodic_return`` / ``charts/episodic_length`` rows at the step they ended. ``episodes.csv`` has one
 row per finished episode: ``episode,step,return,length,wall_time``.
 """
 
@@ -116,10 +117,9 @@ class MetricsWriter:
                 self._tb.add_scalar(name, v, step)
 
     def episode(self, episode: int, step: int, ret: float, length: int, wall_time: float) -> None:
+        """One finished episode: a row of episodes.csv, and charts/episodic_{return,length} scalars."""
         self._episodes.writerow([episode, step, repr(float(ret)), int(length), f"{wall_time:.3f}"])
-        if self._tb is not None:
-            self._tb.add_scalar("charts/episodic_return", float(ret), step)
-            self._tb.add_scalar("charts/episodic_length", int(length), step)
+        self.scalars(step, wall_time, {"charts/episodic_return": float(ret), "charts/episodic_length": float(length)})
 
     def flush(self) -> None:
         self._metrics_fh.flush()

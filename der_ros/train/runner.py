@@ -11,8 +11,9 @@ run directory::
     summary.json    written when the run ends (finished or interrupted)
 
 Resuming (``resume=<checkpoint>``) restores everything in the checkpoint. The environment is
-restored exactly when it can be pickled (CartPole and other pure-Python envs); otherwise (e.g.
-libsumo) the episode in progress is dropped and a fresh one starts, seeded from the step count.
+restored exactly for gymnasium's own pure-Python envs (CartPole, ...), which are pickled into the
+checkpoint; for others (Atari, SUMO) the episode in progress is dropped and a fresh one starts,
+seeded from the step count.
 Ctrl-C (SIGINT) sets a flag that the loop checks after each complete step, so the checkpoint it
 writes is always consistent.
 """
@@ -106,6 +107,14 @@ class _StopFlag:
 
 
 def _try_pickle_env(env: gym.Env) -> bytes | None:
+    """The whole environment pickled, for envs whose state is plain Python/numpy (gymnasium's own).
+
+    Others are not pickled even when pickle would not fail: an unpickled ALE env does not continue
+    the same frames, and a libsumo env would lose its simulation. Those resume with a new episode.
+    """
+    module = type(env.unwrapped).__module__
+    if not module.startswith("gymnasium.envs.") or getattr(env.unwrapped, "ale", None) is not None:
+        return None
     try:
         return pickle.dumps(env, protocol=4)
     except Exception as exc:  # noqa: BLE001 - any env that cannot pickle falls back to a reset

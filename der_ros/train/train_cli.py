@@ -103,6 +103,10 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
 
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
+    import torch
+
+    if cfg.train.device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("train.device = 'cuda', but CUDA is not available on this machine (use auto or cpu)")
     from der_ros.train.runner import train
 
     run_dir = cfg.train.run_dir

@@ -1,0 +1,56 @@
+"""Table 3 plumbing: a short SUMO training run logs episode events; the table reads them back.
+
+Real training (tiny), real env, real files; the paper's numbers and the run's rates must appear.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from der_ros.experiments.suite import PAPER_METHODS, load_result, plan_runs
+from der_ros.experiments.table3 import PAPER_TABLE3, score_run, write_table3
+from der_ros.train.config import load_experiment_config
+from der_ros.train.runner import train
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> None:
+    method = PAPER_METHODS[3]  # DER lambda = 0.9
+    (spec,) = plan_runs(REPO / "config" / "ring.yaml", [method], [0], tmp_path / "runs", group="ring")
+    overrides = {
+        **dict(method.overrides),
+        "train.total_steps": 120,
+        "train.seed": 0,
+        "train.progress": False,
+        "train.tensorboard": False,
+        "train.save_final_checkpoint": False,
+        "agent.learning_starts": 64,
+        "agent.batch_size": 32,
+    }
+    cfg = load_experiment_config(spec.config_path, overrides)
+    train(cfg, run_dir=spec.run_dir)
+
+    with open(Path(spec.run_dir) / "episodes.csv", newline="") as fh:
+        n_episodes = sum(1 for _ in csv.DictReader(fh))
+    assert n_episodes >= 5  # random actions on the ring end episodes quickly
+
+    run = load_result(spec, ("charts/episode_success", "charts/episode_collision"))
+    succ = run.metrics["charts/episode_success"][1]
+    coll = run.metrics["charts/episode_collision"][1]
+    assert len(succ) == len(coll) == n_episodes  # one event row per finished episode
+    assert set(succ.tolist()) <= {0.0, 1.0} and not any(succ * coll)  # an episode is one or the other
+    scores = score_run(run)
+    assert scores["success"] == pytest.approx(succ.mean())
+    assert scores["collision"] == pytest.approx(coll.mean())
+    assert scores["total_reward"] == pytest.approx(run.returns.mean())
+
+    md = write_table3({"ring": {method.name: [run]}}, {method.name: method.label}, tmp_path / "table3.md",
+                      "der table3 ...", [0], {"ring": 120}, 1.0)  # fmt: skip
+    text = md.read_text()
+    assert f"{PAPER_TABLE3['ring']['der0.9']:.2f}" in text
+    assert f"{scores['success']:.3f}" in text and f"{scores['total_reward']:.2f}" in text
+    assert "eclipse-sumo" in text
