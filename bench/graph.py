@@ -11,9 +11,13 @@ Runs, on the ring scenario with the agent/replay settings of ``config/graph.para
 3. ``graph_eval``: the same graph with the agent in evaluation mode (acting only, no learning),
    which isolates the transport + executor round trip from the gradient step.
 
+The in-process loop calls the learner in the node's order (observe, act, then learn), with the
+params file's scenario and seeds, so both runs make the same decisions: ``graph_episodes`` and
+``inprocess_episodes`` agree when no command timed out.
+
 Ends with one JSON line: graph_steps_per_s, inprocess_steps_per_s, graph_ratio,
-roundtrip_p50_ms, roundtrip_p99_ms (training graph), eval_roundtrip_p50_ms/p99_ms, and the
-eval graph's steps/s. Targets: graph >= 60% of in-process, round-trip p50 <= 1 ms.
+roundtrip_p50_ms, roundtrip_p99_ms (training graph), eval_roundtrip_p50_ms/p99_ms, the eval
+graph's steps/s, episode counts. Targets: graph >= 60% of in-process, round-trip p50 <= 1 ms.
 
     .venv/bin/python bench/graph.py [--steps 3000] [--quick]
 """

@@ -351,9 +351,13 @@ class BridgeNode(Node):
     def on_shutdown(self, reason: str) -> None:
         self._publish_diagnostics()
         # Exiting right after the last publish could drop the final state / episode event for a
-        # subscriber that has not acknowledged it yet: wait (bounded) for the reliable acks.
+        # subscriber still receiving it: give the reliable writers a bounded moment to get their acks
+        # (acks follow Fast DDS heartbeats, so this often runs to the deadline; the data itself is
+        # usually delivered long before).
+        deadline = time.monotonic() + 0.5
         for pub in (self.pub_reward, self.pub_state, self.pub_episode, self.pub_diag):
-            pub.wait_for_all_acked(Duration(seconds=2.0))
+            if not pub.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(), 0.0))):
+                self.get_logger().debug(f"{pub.topic_name}: not every subscriber acknowledged the last messages")
         summary = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.summary().items()}
         self.get_logger().info(f"stopping ({reason}); bridge summary: {json.dumps(summary, sort_keys=True)}")
         try:

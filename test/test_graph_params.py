@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import typing
 from pathlib import Path
 
 import pytest
@@ -37,6 +38,17 @@ def test_every_key_is_declared_and_every_value_validates(node):
     owner = {name: prefix for prefix, obj in sections.items() for name in flat_specs(obj, prefix)}
     unknown = sorted(set(values) - set(owner) - STANDARD)
     assert not unknown, f"{PARAMS}: {node} keys that the node does not declare: {unknown}"
+    # ROS parameters are statically typed: a float field written as `5` (an integer) would make
+    # the node refuse the file at start-up, although the dataclass itself would accept it
+    specs = {name: spec for prefix, obj in sections.items() for name, spec in flat_specs(obj, prefix).items()}
+    for name, value in values.items():
+        if name not in specs or value is None:
+            continue
+        tp = specs[name].type
+        if tp is float:
+            assert isinstance(value, float), f"{PARAMS}: {node} {name} = {value!r}: write it as a float (e.g. {value}.0)"
+        if typing.get_origin(tp) in (list, tuple) and typing.get_args(tp)[:1] == (float,):
+            assert all(isinstance(v, float) for v in value), f"{PARAMS}: {node} {name} = {value!r}: write floats"
     for prefix, obj in sections.items():
         mine = {k: v for k, v in values.items() if owner.get(k) == prefix}
         from_dict(type(obj), unflatten(prefix, mine), source=f"{PARAMS} [{node}] {prefix or 'node'}")

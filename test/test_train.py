@@ -283,11 +283,23 @@ def test_make_env_kinds() -> None:
 def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
     """`der_ros/...` ids go through make_env (importing sumo_bridge); a short DER run on the ring."""
     cfg = load_experiment_config(
-        None, small_overrides(150, **{"env.id": "der_ros/LaneChangeRing-v0", "agent.learning_starts": 50})
+        None,
+        small_overrides(
+            150,
+            **{
+                "env.id": "der_ros/LaneChangeRing-v0",
+                "agent.learning_starts": 50,
+                "train.eval_interval": 60,
+                "train.eval_episodes": 1,
+            },
+        ),
     )
     summary = train(cfg, run_dir=tmp_path / "ring")
     assert summary.steps == 150
     names = {r["name"] for r in read_csv(tmp_path / "ring" / "metrics.csv")}
     assert {"losses/td_loss", "replay/h2_size"} <= names
+    # evaluated on the training env (one libsumo simulation per process) at episode boundaries
+    evals = [r for r in read_csv(tmp_path / "ring" / "metrics.csv") if r["name"] == "charts/eval_return"]
+    assert evals and all(int(r["step"]) >= 60 for r in evals)
     agent = DQNAgent.load(tmp_path / "ring" / "checkpoint.pt")
     assert agent.n_actions == 3 and len(agent.obs_shape) == 1 and agent.replay_cfg.kind == "der"

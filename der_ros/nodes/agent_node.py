@@ -304,8 +304,9 @@ class AgentNode(Node):
 
     def on_shutdown(self, reason: str) -> None:
         self._publish_metrics(None, {})  # final counters for the recorder / tests
+        deadline = time.monotonic() + 0.5
         for pub in (self.pub_cmd, self.pub_metrics):  # let subscribers acknowledge the last messages
-            pub.wait_for_all_acked(Duration(seconds=2.0))
+            pub.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(), 0.0)))
         try:
             self.save()
         except OSError as exc:

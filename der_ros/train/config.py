@@ -87,7 +87,12 @@ class TrainConfig:
     checkpoint_interval: int = param(
         0, "write runs/.../checkpoint.pt every this many env steps (0 = only at the end and on Ctrl-C)", low=0
     )
-    eval_interval: int = param(0, "greedy evaluation every this many env steps (0 = off)", low=0)
+    eval_interval: int = param(
+        0,
+        "greedy evaluation every this many env steps (0 = off); SUMO envs (one simulation per process) are "
+        "evaluated on the training env at the next episode end",
+        low=0,
+    )
     eval_episodes: int = param(5, "episodes per evaluation", low=1)
     tensorboard: bool = param(True, "also write TensorBoard event files (metrics.csv is always written)")
     progress: bool = param(True, "show a progress bar (only on a terminal)")

@@ -210,6 +210,7 @@ def train(
     wall_offset = 0.0
     obs: np.ndarray
     resume_step: int | None = None
+    runner_eval_pending: int | None = None
     if resume is not None:
         ckpt = read_checkpoint(resume, agent.device)
         agent.load_state_dict(ckpt["agent"])
@@ -220,6 +221,7 @@ def train(
         last_return = returns[-1] if returns else None
         wall_offset = float(runner["wall_time"])
         acc.load_state_dict(runner["accumulator"])
+        runner_eval_pending = runner.get("eval_pending")
         env_bytes = ckpt["extra"].get("env")
         if env_bytes is not None:
             env.close()
@@ -233,6 +235,10 @@ def train(
 
     writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=resume_step)
     eval_env: gym.Env | None = None
+    # libsumo runs one simulation per process: SUMO envs are evaluated on the training env at the
+    # next episode boundary instead of on a second env instance.
+    shared_eval = cfg.env.id.startswith("der_ros/")
+    eval_pending: int | None = runner_eval_pending
     progress = _Progress(t_cfg.total_steps, agent.steps, t_cfg.progress, f"{cfg.env.id} {replay_label(cfg.replay)}")
     t0 = time.perf_counter()
     log_t, log_step = t0, agent.steps
@@ -264,6 +270,7 @@ def train(
                 "returns": returns,
                 "wall_time": wall(),
                 "accumulator": acc.state_dict(),
+                "eval_pending": eval_pending,
                 "obs": np.array(obs, copy=True),
             },
             "env": _try_pickle_env(env),
@@ -284,6 +291,10 @@ def train(
                 if "episode" in info:
                     record_episode(info)
                 if terminated or truncated:
+                    if eval_pending is not None:  # shared-simulation env: evaluate between episodes
+                        score = evaluate(agent, env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
+                        writer.scalars(agent.steps, wall(), {"charts/eval_return": score})
+                        eval_pending = None
                     next_obs, reset_info = env.reset()
                     if "episode" in reset_info:
                         record_episode(reset_info)
@@ -301,10 +312,13 @@ def train(
                     writer.scalars(step, wall(), values)
                     progress.update(step, last_return, sps)
                 if t_cfg.eval_interval and step % t_cfg.eval_interval == 0:
-                    if eval_env is None:
-                        eval_env = make_env_from_config(cfg.env, t_cfg.seed + 10_000)
-                    score = evaluate(agent, eval_env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
-                    writer.scalars(step, wall(), {"charts/eval_return": score})
+                    if shared_eval:
+                        eval_pending = step
+                    else:
+                        if eval_env is None:
+                            eval_env = make_env_from_config(cfg.env, t_cfg.seed + 10_000)
+                        score = evaluate(agent, eval_env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
+                        writer.scalars(step, wall(), {"charts/eval_return": score})
                 if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
                     checkpoint()
                 if stop.stop:
