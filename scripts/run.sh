@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# README command 1: set everything up, then run the main job.
+# README command 1: set everything up, then run the main job: the ROS 2 graph (SUMO bridge, DER agent, MCAP recorder) training on the ring.
 # Extra arguments go to the job (see `der graph --help`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
-exec .venv/bin/der train --config config/cartpole.yaml --replay der --lam 0.9 "$@"
+exec .venv/bin/der graph --scenario ring --steps 5000 "$@"

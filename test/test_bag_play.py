@@ -100,7 +100,7 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
 
     bag = tmp_path / "bag"
     if kind == "graph":
-        record_env_bag(bag, episodes=2, max_episode_steps=6)
+        record_env_bag(bag, episodes=5, max_episode_steps=6)
     else:  # rosbags-written, std_msgs/String + sensor_msgs/Imu, no recorded QoS
         write_foreign_bag(bag, n=30)
     want = _expected(bag)
@@ -117,7 +117,7 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
                 got.append((time.monotonic(), topic, data))
 
         node.create_subscription(_message_class(conn.msgtype), topic, cb, qos, raw=True)
-    rate = 4.0 if kind == "graph" else 1.0
+    rate = 2.0 if kind == "graph" else 1.0
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_graph.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     argv = [sys.executable, "-m", "der_ros.cli", "replay", "play", str(bag), "--rate", str(rate),
