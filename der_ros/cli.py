@@ -60,6 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"der {top.command}: configuration error: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:
+        if not getattr(exc, "user_facing", False):
+            raise
+        print(f"der {top.command}: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"der {top.command}: interrupted", file=sys.stderr)
         return 130

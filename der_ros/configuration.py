@@ -21,6 +21,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Iterable, Mapping
 from dataclasses import MISSING, dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -37,6 +38,8 @@ __all__ = [
     "from_dict",
     "to_dict",
     "load_yaml",
+    "read_yaml_mapping",
+    "reject_unknown_keys",
     "save_yaml",
     "field_specs",
     "add_dataclass_arguments",
@@ -229,16 +232,27 @@ def validate(obj: Any, source: str = "config") -> Any:
     return obj
 
 
+def reject_unknown_keys(
+    data: Mapping[str, Any], known: Iterable[str], source: str, what: str = "key", known_as: str = "known keys"
+) -> None:
+    """Raise :class:`ConfigError` for the first (sorted) key of ``data`` not in ``known``.
+
+    The message names the source, the key, its value and the known keys (in the order given):
+    ``"<source>: unknown <what> 'k' (value v); <known_as>: a, b"``.
+    """
+    known = list(known)
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ConfigError(
+            f"{source}: unknown {what} {unknown[0]!r} (value {data[unknown[0]]!r}); {known_as}: {', '.join(known)}"
+        )
+
+
 def from_dict(cls: type[T], data: dict[str, Any] | None, source: str = "config") -> T:
     """Build and validate a config dataclass from a mapping; unknown keys are errors."""
     data = dict(data or {})
     specs = {s.name: s for s in field_specs(cls)}
-    unknown = sorted(set(data) - set(specs))
-    if unknown:
-        raise ConfigError(
-            f"{source}: unknown key {unknown[0]!r} (value {data[unknown[0]]!r}); "
-            f"known keys of {cls.__name__}: {', '.join(sorted(specs))}"
-        )
+    reject_unknown_keys(data, sorted(specs), source, what="key", known_as=f"known keys of {cls.__name__}")
     kwargs = {}
     for name, spec in specs.items():
         if name in data:
@@ -262,8 +276,9 @@ def to_dict(obj: Any) -> dict[str, Any]:
     return out
 
 
-def load_yaml(path: str | Path, cls: type[T], section: str | None = None) -> T:
-    """Load ``cls`` from a YAML file (optionally from one top-level ``section`` of it)."""
+def read_yaml_mapping(path: str | Path, expected: str = "a mapping") -> dict[str, Any]:
+    """The top-level mapping of a YAML file (``{}`` when empty); :class:`ConfigError` naming the file
+    if it is missing, not valid YAML, or not ``expected`` (a mapping) at the top level."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
@@ -272,7 +287,14 @@ def load_yaml(path: str | Path, cls: type[T], section: str | None = None) -> T:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+        raise ConfigError(f"{path}: expected {expected} at the top level, got {type(data).__name__}")
+    return data
+
+
+def load_yaml(path: str | Path, cls: type[T], section: str | None = None) -> T:
+    """Load ``cls`` from a YAML file (optionally from one top-level ``section`` of it)."""
+    path = Path(path)
+    data = read_yaml_mapping(path)
     source = str(path)
     if section is not None:
         data = data.get(section, {})

@@ -302,6 +302,24 @@ class LaneChangeEnv(gym.Env):
             self._ego_present = False
         self._episodes_since_load += 1
         self._warmup(cfg.urban_ego_gap_seconds)
+        if self._insert_urban_ego():
+            return
+        # The start lane stayed blocked (e.g. a jam left by earlier episodes): start over from a
+        # fresh, warmed-up simulation rather than failing a long training run.
+        log.warning("ego could not be inserted on the bridge after 20 attempts; reloading the simulation")
+        self._load()
+        self._ego_serial = 0
+        self._warmup(cfg.urban_warmup_seconds)
+        self._episodes_since_load = 1
+        if not self._insert_urban_ego():
+            raise RuntimeError(
+                "could not insert the ego vehicle on the bridge after 20 attempts, even after a reload "
+                "(traffic too dense? check urban_depart_pos and the background demand)"
+            )
+
+    def _insert_urban_ego(self) -> bool:
+        """Try up to 20 seeded positions on the start lane; True once the ego is in the network."""
+        cfg, api = self.config, self.api
         for _attempt in range(20):
             # a fresh id per attempt: SUMO 1.28 never inserts a vehicle re-added under the id of one
             # removed before its insertion; unique ids also keep logs unambiguous
@@ -315,10 +333,10 @@ class LaneChangeEnv(gym.Env):
                 self._sim_step()
                 if self.ego_id in api.vehicle.getIDList():
                     self._subscribe_ego()
-                    return
+                    return True
             api.vehicle.remove(self.ego_id)  # could not be inserted there (blocked): try elsewhere
             self._sim_step()
-        raise RuntimeError("could not insert the ego vehicle on the bridge after 20 attempts (traffic too dense?)")
+        return False
 
     def _urban_insert_pos(self) -> float:
         """A seeded position for the ego on the bridge: the middle of a random gap that fits it.

@@ -19,12 +19,10 @@ Generic API: :func:`start_node`, :class:`NodeProcess`, :class:`ProbeNode`, :func
 
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -33,6 +31,9 @@ from typing import Any
 
 import pytest
 import yaml
+
+from der_ros.graph.runner import ManagedProcess, ProcessSpec, reserve_domain_id, ros_environment
+from der_ros.nodes.spin import BackgroundNode
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
@@ -48,39 +49,6 @@ __all__ = [
 ]
 
 REPO = Path(__file__).resolve().parents[1]
-_LOCK_DIR = Path(tempfile.gettempdir()) / "der_ros_test_domains"
-
-
-# -- domain ids ---------------------------------------------------------------------------------
-class DomainLease:
-    """A ROS domain id held through an exclusive lock file until :meth:`release`."""
-
-    def __init__(self, domain_id: int, fd: int) -> None:
-        self.domain_id = domain_id
-        self._fd = fd
-
-    def release(self) -> None:
-        if self._fd >= 0:
-            fcntl.flock(self._fd, fcntl.LOCK_UN)
-            os.close(self._fd)
-            self._fd = -1
-
-
-def reserve_domain_id(low: int = 1, high: int = 101) -> DomainLease:
-    """Lock a free domain id in [low, high], starting from one derived from the pid."""
-    _LOCK_DIR.mkdir(exist_ok=True)
-    span = high - low + 1
-    start = os.getpid() % span
-    for i in range(span):
-        did = low + (start + i) % span
-        fd = os.open(_LOCK_DIR / f"{did}.lock", os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        return DomainLease(did, fd)
-    raise RuntimeError(f"no free ROS domain id in {low}..{high}")
 
 
 # -- waiting ------------------------------------------------------------------------------------
@@ -110,35 +78,15 @@ def wait_for(
 
 
 # -- node processes -----------------------------------------------------------------------------
-class NodeProcess:
-    """A node running in its own process (own session, so signals reach only it)."""
+class NodeProcess(ManagedProcess):
+    """A node running in its own process (own session, so signals reach only it), run from the repo root."""
 
     def __init__(self, name: str, argv: list[str], env: Mapping[str, str], log_path: Path) -> None:
-        self.name = name
+        super().__init__(ProcessSpec(name, argv, env), log_path, cwd=REPO)
         self.argv = argv
-        self.log_path = log_path
-        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(
-            argv, env=dict(env), stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, cwd=REPO,
-        )
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def poll(self) -> int | None:
-        return self.proc.poll()
-
-    def output(self) -> str:
-        """Everything the process wrote so far (stdout and stderr)."""
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text(errors="replace")
 
     def signal(self, sig: int) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, sig)
+        self.send(sig)
 
     def wait(self, timeout: float) -> int:
         """Wait for exit; returns the exit code (raises subprocess.TimeoutExpired)."""
@@ -156,8 +104,7 @@ class NodeProcess:
                 except ProcessLookupError:
                     pass
                 self.proc.wait(timeout=10)
-        if not self._log.closed:
-            self._log.close()
+        self.close()
         return self.proc.returncode
 
 
@@ -194,48 +141,20 @@ def start_node(
     for k, v in (params or {}).items():
         argv += ["-p", _param_arg(k, v)]
     argv += list(extra_ros_args)
-    full_env = dict(os.environ)
-    full_env.update(
-        {
-            "ROS_DOMAIN_ID": str(domain_id),
-            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-            "PYTHONUNBUFFERED": "1",
-            "OMP_NUM_THREADS": "1",
-            "RCUTILS_LOGGING_BUFFERED_STREAM": "0",
-        }
-    )
+    full_env = ros_environment(domain_id)
     full_env.update(env or {})
     log_path = log_dir / f"{label}-{int(time.time() * 1000) % 10_000_000}.log"
     return NodeProcess(label, argv, full_env, log_path)
 
 
 # -- in-test rclpy node -------------------------------------------------------------------------
-class ProbeNode:
+class ProbeNode(BackgroundNode):
     """An rclpy node in the test process, spinning in a background thread, in its own Context."""
 
     def __init__(self, domain_id: int, name: str = "test_probe") -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = Node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__(name, domain_id, spin_timeout=0.05, thread_name="probe-spin")
         self.lock = threading.Lock()
-        self._thread = threading.Thread(target=self._spin, name="probe-spin", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        from rclpy.executors import ExternalShutdownException
-
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.05)
-        except (ExternalShutdownException, Exception):  # shutting down in teardown
-            pass
+        self.start()
 
     def collect(self, topic: str, msg_type: type, qos: Any = 100, with_info: bool = False) -> list[Any]:
         """Subscribe; returns the list the messages (or (msg, info, t_recv) tuples) are appended to."""
@@ -276,17 +195,6 @@ class ProbeNode:
 
         res = self.call(GetParameters, f"/{node_name}/get_parameters", GetParameters.Request(names=names), timeout)
         return {n: parameter_value_to_python(v) for n, v in zip(names, res.values)}
-
-    def close(self) -> None:
-        import rclpy
-
-        try:
-            rclpy.shutdown(context=self.context)
-        except Exception:  # already shut down
-            pass
-        self._thread.join(timeout=5)
-        self.executor.shutdown(timeout_sec=1)
-        self.node.destroy_node()
 
 
 class RosGraph:

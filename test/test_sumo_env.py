@@ -345,3 +345,30 @@ def test_traci_backend_matches_libsumo() -> None:
         assert r1 == r2
         np.testing.assert_allclose(p1, p2, rtol=0, atol=1e-9)
     assert any(p[0, LANE] for _o, _r, p in traci_seq) or traci_seq[-1][1] != 0.0  # the change happened
+
+
+def test_urban_reset_reloads_when_the_start_lane_stays_blocked(urban: LaneChangeEnv, monkeypatch) -> None:
+    """A jam on the start lane must not end a long training run: the env reloads and retries."""
+    urban.reset(seed=5)
+    urban.step(0)
+    real_insert = urban._insert_urban_ego
+    calls: list[bool] = []
+
+    def blocked_once() -> bool:
+        if not calls:
+            calls.append(False)
+            return False  # as if all 20 positions were blocked
+        calls.append(True)
+        return real_insert()
+
+    loads: list[int] = []
+    real_load = urban._load
+    monkeypatch.setattr(urban, "_insert_urban_ego", blocked_once)
+    monkeypatch.setattr(urban, "_load", lambda: (loads.append(1), real_load())[1])
+    obs, info = urban.reset()
+    assert calls == [False, True] and loads == [1]
+    assert urban.ego_id in urban.api.vehicle.getIDList()
+    assert info["lane"] == urban.config.ego_lane and urban.observation_space.contains(obs)
+    monkeypatch.setattr(urban, "_insert_urban_ego", lambda: False)
+    with pytest.raises(RuntimeError, match="even after a reload"):
+        urban.reset()

@@ -124,3 +124,20 @@ def test_table2_short_atari_run(tmp_path: Path) -> None:
     assert (results / "table2_curves.png").is_file()
     cfg = (out / "breakout" / "der0.1" / "seed0" / "config.yaml").read_text()
     assert "ALE/Breakout-v5" in cfg
+
+
+def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
+    from der_ros.experiments.suite import PAPER_METHODS, SuiteRunError, plan_runs, run_specs
+
+    dqn = [m for m in PAPER_METHODS if m.name == "dqn"]
+    small = {"train.total_steps": 200, "agent.learning_starts": 50, "agent.hidden_sizes": [16],
+             "train.tensorboard": False, "train.save_final_checkpoint": False}
+    good = plan_runs(REPO / "config" / "cartpole.yaml", dqn, [0], tmp_path, small, group="good")
+    bad = plan_runs(REPO / "config" / "cartpole.yaml", dqn, [0], tmp_path, small | {"env.id": "NoSuchEnv-v0"},
+                    group="bad")
+    with pytest.raises(SuiteRunError) as err:
+        run_specs(bad + good, jobs=1)
+    assert [spec.group for spec, _ in err.value.failures] == ["bad"]
+    assert "NoSuchEnv" in str(err.value) and "rerun the same command" in str(err.value)
+    assert json.loads((tmp_path / "good" / "dqn" / "seed0" / "summary.json").read_text())["steps"] == 200
+    assert not (tmp_path / "bad" / "dqn" / "seed0" / "summary.json").exists()

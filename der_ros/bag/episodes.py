@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from der_ros.bag.reader import BagError, BagReader, Message
-from der_ros.bag.topics import topic_by_name
+from der_ros.bag.topics import parse_key_values, topic_by_name
 
 __all__ = [
     "ROLE_TYPES",
@@ -245,17 +245,6 @@ class BagScan:
         return (self.last_ns - self.first_ns) / 1e9
 
 
-def _parse_value(text: str) -> Any:
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
 class _Segment:
     """Running statistics of the episode being read (flat memory except the speed trace)."""
 
@@ -322,7 +311,7 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
             st = stamp_ns(m.header)
             for status in m.status:
                 if status.name == "episode":
-                    events.append((st, str(status.message), {kv.key: _parse_value(kv.value) for kv in status.values}))
+                    events.append((st, str(status.message), parse_key_values(status.values)))
         elif topic == t_metrics:
             m = msg.decode()
             t = stamp_ns(m.header) / 1e9 if m.header.stamp.sec or m.header.stamp.nanosec else lt / 1e9

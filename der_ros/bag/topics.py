@@ -13,6 +13,7 @@ The table mirrors "ROS 2 graph contract" in ``docs/architecture.md``; names are 
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +26,7 @@ __all__ = [
     "topic_by_name",
     "default_record_topics",
     "topics_markdown",
+    "parse_key_values",
 ]
 
 #: rosbag2 writes "infinite" durations (deadline, lifespan, lease) as this pair.
@@ -232,3 +234,22 @@ def topics_markdown() -> str:
             f"| {s.rate} | {s.meaning.replace('|', '/')} | {s.units} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def parse_key_values(values: Iterable[Any]) -> dict[str, int | float | str]:
+    """``diagnostic_msgs/KeyValue`` items (rclpy or decoded from a bag) -> key -> int, float or text.
+
+    The inverse of how the ``episode`` topic's values are written (``str`` of ints, ``repr`` of floats).
+    """
+    return {kv.key: _parse_value(kv.value) for kv in values}
+
+
+def _parse_value(text: str) -> int | float | str:
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text

@@ -20,7 +20,17 @@ import numpy as np  # noqa: E402
 from der_ros.experiments.stats import bootstrap_band, curve_on_grid  # noqa: E402
 from der_ros.experiments.suite import RunResult  # noqa: E402
 
-__all__ = ["plot_learning_curves", "plot_td_traces", "metric_on_grid"]
+__all__ = ["plot_learning_curves", "plot_td_traces", "metric_on_grid", "save_figure"]
+
+
+def save_figure(fig: plt.Figure, path: str | Path, dpi: int = 120) -> Path:
+    """Lay out, write (creating the folder) and close ``fig``; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def _grid(results: Mapping[str, Sequence[RunResult]], n_points: int) -> np.ndarray:
@@ -59,12 +69,7 @@ def plot_learning_curves(
     if own:
         if path is None:
             raise ValueError("plot_learning_curves needs a path when it makes its own figure")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.tight_layout()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        return path
+        return save_figure(fig, path)
     return None
 
 
@@ -129,9 +134,4 @@ def plot_td_traces(
         ax_w.text(0.5, 0.5, "no DER runs", ha="center", va="center", transform=ax_w.transAxes)
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

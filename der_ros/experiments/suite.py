@@ -209,13 +209,20 @@ def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[st
     pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init)
     pending: dict[Future[dict[str, Any]], RunSpec] = {pool.submit(run_one, s): s for s in todo}
     done_count = 0
+    failures: list[tuple[RunSpec, BaseException]] = []
     try:
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
                 spec = pending.pop(fut)
-                summary = fut.result()
                 done_count += 1
+                try:
+                    summary = fut.result()
+                except Exception as exc:  # one failed run must not stop the others
+                    failures.append((spec, exc))
+                    log.error("[%d/%d] run %s failed: %s: %s", done_count, len(todo), spec.run_dir,
+                              type(exc).__name__, exc)
+                    continue
                 results.append(summary)
                 log.info(
                     "[%d/%d] %s seed %d: %d steps, %d episodes, mean return %.2f%s",
@@ -233,7 +240,21 @@ def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[st
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+    if failures:
+        raise SuiteRunError(failures)
     return results
+
+
+class SuiteRunError(RuntimeError):
+    """Some runs of a suite raised; the others finished and are kept (a rerun redoes only these)."""
+
+    user_facing = True
+
+    def __init__(self, failures: Sequence[tuple[RunSpec, BaseException]]) -> None:
+        self.failures = list(failures)
+        lines = [f"{len(self.failures)} run(s) failed (the others finished; rerun the same command to retry these):"]
+        lines += [f"  {spec.run_dir}: {type(exc).__name__}: {exc}" for spec, exc in self.failures]
+        super().__init__("\n".join(lines))
 
 
 def run_suite(
@@ -284,6 +305,8 @@ def add_suite_arguments(
 
     ``default_config`` is relative to the working directory, or else to the source checkout.
     """
+    from der_ros.train.config import add_set_argument
+
     if not Path(default_config).is_file():
         candidate = Path(__file__).resolve().parents[2] / default_config
         if candidate.is_file():
@@ -308,33 +331,35 @@ def add_suite_arguments(
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device of every run")
     parser.add_argument("--out", default=default_out, help=f"folder of the run directories (default {default_out})")
     parser.add_argument("--results", default="results", help="folder for the table (.md) and figures (.png)")
-    parser.add_argument(
-        "--set",
-        dest="set_values",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="config override for every run; VALUE is YAML (repeatable)",
-    )
+    add_set_argument(parser, help="config override for every run; VALUE is YAML (repeatable)")
 
 
 def suite_overrides(args: Any) -> dict[str, Any]:
     """Dotted overrides from the shared suite flags (``--steps``, ``--device``, ``--set``)."""
-    import yaml
-
-    from der_ros.configuration import ConfigError
+    from der_ros.train.config import parse_assignments
 
     out: dict[str, Any] = {}
     if args.steps is not None:
         out["train.total_steps"] = int(args.steps)
     if args.device is not None:
         out["train.device"] = args.device
-    for text in args.set_values:
-        if "=" not in text:
-            raise ConfigError(f"command line: --set {text!r}, expected section.key=value")
-        key, raw = text.split("=", 1)
-        out[key.strip()] = yaml.safe_load(raw)
+    out.update(parse_assignments(args.set_values, "command line", label="--set"))
     return out
+
+
+def suite_seeds(args: Any) -> list[int]:
+    """The seeds of a suite: ``--first-seed`` up to ``--first-seed + --seeds - 1``."""
+    return list(range(args.first_seed, args.first_seed + args.seeds))
+
+
+def report_interrupted(name: str, summaries: Iterable[dict[str, Any]]) -> bool:
+    """True, after telling the user how to continue, if a run of ``der <name>`` was interrupted."""
+    if not any(s.get("interrupted") for s in summaries):
+        return False
+    import sys
+
+    print(f"der {name}: interrupted; runs saved checkpoints, rerun the same command to continue", file=sys.stderr)
+    return True
 
 
 def suite_command(name: str, args: Any, extra: Sequence[str] = ()) -> str:

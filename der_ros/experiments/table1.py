@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from der_ros.experiments.plots import plot_learning_curves, plot_td_traces
+from der_ros.experiments.report import run_details, write_markdown
 from der_ros.experiments.stats import CI, average_score, bootstrap_ci, max_moving_average
 from der_ros.experiments.suite import (
     RunResult,
@@ -30,9 +30,11 @@ from der_ros.experiments.suite import (
     load_result,
     methods_by_name,
     plan_runs,
+    report_interrupted,
     run_specs,
     suite_command,
     suite_overrides,
+    suite_seeds,
 )
 
 __all__ = ["PAPER_TABLE1", "add_arguments", "run", "score_runs", "write_table1"]
@@ -94,43 +96,26 @@ def write_table1(
                 f"| {labels[name]} | {r.spec.seed} | {len(r.returns)} | {max_moving_average(r.returns):.2f} "
                 f"| {average_score(r.returns):.2f} |"
             )
-    info = environment_info()
     lines += [
         "",
         "![learning curves](table1_curves.png)",
         "",
         "![TD error and H2 weight](table1_td.png)",
         "",
-        "## Runs",
-        "",
-        f"- command: `{command}`",
-        f"- seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)} per method)",
-        f"- environment steps per run: {steps}",
-        f"- suite wall time: {wall_s / 60:.1f} min",
-        *[f"- {k}: {v}" for k, v in info.items()],
-        "",
-        "## Per seed",
-        "",
-        *per_seed,
-        "",
+        *run_details(command, seeds, steps, wall_s, environment_info(), per_seed, seeds_per="method"),
     ]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(path)
-    return path
+    return write_markdown(path, lines)
 
 
 def run(args: argparse.Namespace) -> int:
     methods = methods_by_name(args.methods)
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
     t0 = time.perf_counter()
     summaries = run_specs(specs, args.jobs)
     wall = time.perf_counter() - t0
-    if any(s.get("interrupted") for s in summaries):
-        print("der table1: interrupted; runs saved checkpoints, rerun the same command to continue", file=sys.stderr)
+    if report_interrupted("table1", summaries):
         return 130
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}
     for spec in specs:

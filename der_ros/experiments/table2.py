@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from der_ros.experiments.plots import plot_learning_curves
+from der_ros.experiments.plots import plot_learning_curves, save_figure
+from der_ros.experiments.report import run_details, write_markdown
 from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,
@@ -36,9 +36,11 @@ from der_ros.experiments.suite import (
     load_result,
     methods_by_name,
     plan_runs,
+    report_interrupted,
     run_specs,
     suite_command,
     suite_overrides,
+    suite_seeds,
 )
 
 __all__ = ["GAMES", "PAPER_TABLE2", "add_arguments", "run", "default_atari_jobs"]
@@ -115,7 +117,7 @@ def _select_games(names: Sequence[str] | None) -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     methods = methods_by_name(args.methods)
     games = _select_games(args.games)
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    seeds = suite_seeds(args)
     base = suite_overrides(args)
     specs: list[RunSpec] = []
     for game, env_id in games.items():
@@ -124,8 +126,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     summaries = run_specs(specs, jobs)
     wall = time.perf_counter() - t0
-    if any(s.get("interrupted") for s in summaries):
-        print("der table2: interrupted; runs saved checkpoints, rerun the same command to continue", file=sys.stderr)
+    if report_interrupted("table2", summaries):
         return 130
 
     labels = {m.name: m.label for m in methods}
@@ -141,9 +142,7 @@ def run(args: argparse.Namespace) -> int:
     fig, axes = plt.subplots(1, len(games), figsize=(5.5 * len(games), 4.2), squeeze=False)
     for ax, game in zip(axes[0], games):
         plot_learning_curves(results[game], labels, None, window=100, title=game, ax=ax)
-    fig.tight_layout()
-    fig.savefig(out / "table2_curves.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "table2_curves.png", dpi=110)
 
     extra = ["--games", *[_game_key(g) for g in games]] if args.games else []
     md = _write_table2(results, labels, out / "table2.md", suite_command("table2", args, extra), seeds, wall)
@@ -170,7 +169,10 @@ def _write_table2(
     avg_rows, max_rows, per_seed = (
         [head, sep],
         ["| Game | " + " | ".join(labels[n] for n in names) + " |", "|---|" + "---|" * len(names)],
-        [],
+        [
+            "| Game | Method | Seed | Steps | Episodes | Mean of last 100 | Best MA100 |",
+            "|---|---|---|---|---|---|---|",
+        ],
     )
     steps_seen = []
     for game, by_method in results.items():
@@ -190,7 +192,6 @@ def _write_table2(
                 )
         avg_rows.append(f"| {game} | " + " | ".join(cells) + " |")
         max_rows.append(f"| {game} | " + " | ".join(max_cells) + " |")
-    info = environment_info()
     lines = [
         "# Table 2 — Atari (paper protocol)",
         "",
@@ -205,22 +206,7 @@ def _write_table2(
         "",
         "![learning curves](table2_curves.png)",
         "",
-        "## Runs",
-        "",
-        f"- command: `{command}`",
-        f"- seeds: {', '.join(str(s) for s in seeds)}",
-        f"- environment steps per run: {int(np.max(steps_seen)) if steps_seen else 0}",
-        f"- suite wall time: {wall_s / 60:.1f} min",
-        *[f"- {k}: {v}" for k, v in info.items()],
-        "",
-        "## Per seed",
-        "",
-        "| Game | Method | Seed | Steps | Episodes | Mean of last 100 | Best MA100 |",
-        "|---|---|---|---|---|---|---|",
-        *per_seed,
-        "",
     ]
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(path)
-    return path
+    steps = int(np.max(steps_seen)) if steps_seen else 0
+    lines += run_details(command, seeds, steps, wall_s, environment_info(), per_seed)
+    return write_markdown(path, lines)

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from der_ros.experiments.plots import plot_learning_curves
+from der_ros.experiments.report import run_details, write_markdown
 from der_ros.experiments.stats import CI, average_score, bootstrap_ci, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,
@@ -44,6 +45,7 @@ from der_ros.experiments.suite import (
     run_specs,
     suite_command,
     suite_overrides,
+    suite_seeds,
 )
 
 __all__ = ["PAPER_TABLE3", "NETWORKS", "add_arguments", "run", "score_run", "write_table3"]
@@ -149,30 +151,13 @@ def write_table3(
                 )
         lines += ["", f"![{net} learning curves](table3_{net}_curves.png)", ""]
     info = environment_info() | _versions()
-    lines += [
-        "## Runs",
-        "",
-        f"- command: `{command}`",
-        f"- seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)} per method and network)",
-        *[f"- environment steps per run ({net}): {n}" for net, n in steps.items()],
-        f"- suite wall time: {wall_s / 60:.1f} min",
-        *[f"- {k}: {v}" for k, v in info.items()],
-        "",
-        "## Per seed",
-        "",
-        *per_seed,
-        "",
-    ]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(path)
-    return path
+    lines += run_details(command, seeds, steps, wall_s, info, per_seed, seeds_per="method and network")
+    return write_markdown(path, lines)
 
 
 def run(args: argparse.Namespace) -> int:
     methods = methods_by_name(args.methods)
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     configs = {"ring": args.config, "urban": args.urban_config}
     specs: list[RunSpec] = []

@@ -13,6 +13,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from der_ros.nodes.spin import BackgroundNode
+
 __all__ = ["GraphMonitor", "ProgressSnapshot"]
 
 
@@ -51,18 +53,14 @@ class ProgressSnapshot:
         return " | ".join(parts)
 
 
-class GraphMonitor:
+class GraphMonitor(BackgroundNode):
     """Subscribes to ``lane_change_cmd``, ``episode`` and ``agent/metrics`` in ``domain_id``.
 
     ``namespace`` is the graph's namespace (topic names are relative to it).
     """
 
     def __init__(self, domain_id: int, namespace: str = "") -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import Joy
 
@@ -73,23 +71,19 @@ class GraphMonitor:
         self._lock = threading.Lock()
         self._snap = ProgressSnapshot()
         self.events: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=100_000)
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=_no_signals())
-        self.node = Node("der_graph_monitor", namespace=namespace or None, context=self.context)
+        # The runner handles Ctrl-C itself: rclpy must not install its own handlers.
+        super().__init__(
+            "der_graph_monitor",
+            domain_id,
+            namespace=namespace or None,
+            spin_timeout=0.1,
+            thread_name="der-graph-monitor",
+            handle_signals=False,
+        )
         self.node.create_subscription(Joy, "lane_change_cmd", self._on_cmd, QoSProfile(depth=100))
         self.node.create_subscription(DiagnosticArray, "episode", self._on_episode, QoSProfile(depth=100))
         self.node.create_subscription(DiagnosticArray, "agent/metrics", self._on_metrics, QoSProfile(depth=50))
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, name="der-graph-monitor", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.1)
-        except Exception:  # context shut down under us while closing
-            pass
+        self.start()
 
     def _on_cmd(self, _msg: Any) -> None:
         with self._lock:
@@ -123,21 +117,3 @@ class GraphMonitor:
             s = self._snap
             return ProgressSnapshot(s.steps, s.episodes, list(s.returns), dict(s.outcomes), s.lane_changes,
                                     dict(s.metrics))
-
-    def close(self) -> None:
-        import rclpy
-
-        try:
-            rclpy.shutdown(context=self.context)
-        except Exception:  # already shut down
-            pass
-        self._thread.join(timeout=5)
-        self.executor.shutdown(timeout_sec=1)
-        self.node.destroy_node()
-
-
-def _no_signals() -> Any:
-    """The runner handles Ctrl-C itself: rclpy must not install its own handlers."""
-    from rclpy.signals import SignalHandlerOptions
-
-    return SignalHandlerOptions.NO

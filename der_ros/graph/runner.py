@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 #: Domain ids above ~101 break Fast DDS port arithmetic on Linux; 0 is everybody's default.
 DOMAIN_LOW, DOMAIN_HIGH = 1, 101
-#: Shared with test/ros_harness.py so concurrent tests and runs never share a domain.
+#: Lock files shared by all users of :func:`reserve_domain_id` (runs, tests, benchmarks): never a shared domain.
 _LOCK_DIR = Path(tempfile.gettempdir()) / "der_ros_test_domains"
 
 

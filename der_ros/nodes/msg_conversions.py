@@ -25,6 +25,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2, PointField
 from std_msgs.msg import Header
 
+from der_ros.bag.topics import parse_key_values
 from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = [
@@ -241,17 +242,6 @@ def _kv(values: Mapping[str, object]) -> list[KeyValue]:
     return [KeyValue(key=str(k), value=repr(v) if isinstance(v, float) else str(v)) for k, v in values.items()]
 
 
-def _parse_value(text: str) -> float | int | str:
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
 def make_episode_event(
     stamp_ns: int, event: str, values: Mapping[str, object], hardware_id: str = "sumo_bridge"
 ) -> DiagnosticArray:
@@ -270,7 +260,7 @@ def parse_episode_events(msg: DiagnosticArray) -> list[tuple[int, str, dict[str,
     """Every ``episode`` status of a DiagnosticArray as (stamp_ns, event, values)."""
     stamp = time_to_ns(msg.header.stamp)
     return [
-        (stamp, s.message, {kv.key: _parse_value(kv.value) for kv in s.values})
+        (stamp, s.message, parse_key_values(s.values))
         for s in msg.status
         if s.name == EPISODE_STATUS_NAME
     ]

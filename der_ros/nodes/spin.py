@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
-__all__ = ["ManagedNode", "run_node"]
+__all__ = ["BackgroundNode", "ManagedNode", "run_node"]
 
 
 class ManagedNode(Protocol):
@@ -78,3 +79,62 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
             node.destroy_node()
             rclpy.try_shutdown()
     return 0
+
+
+class BackgroundNode:
+    """An rclpy node in its own ``Context`` and domain, spun by a single-threaded executor in a daemon thread.
+
+    For processes whose main thread is not ROS (the ``der graph`` supervisor, the test process).
+    Create subscriptions/publishers on :attr:`node`, then :meth:`start` the spin thread (entities
+    may also be added while it runs); :meth:`close` shuts the context down and joins the thread.
+    ``handle_signals=False`` keeps rclpy from installing its own SIGINT/SIGTERM handlers.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        domain_id: int,
+        *,
+        namespace: str | None = None,
+        spin_timeout: float = 0.1,
+        thread_name: str = "rclpy-spin",
+        handle_signals: bool = True,
+    ) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self.context = Context()
+        init_kwargs: dict[str, Any] = {}
+        if not handle_signals:
+            from rclpy.signals import SignalHandlerOptions
+
+            init_kwargs["signal_handler_options"] = SignalHandlerOptions.NO
+        rclpy.init(context=self.context, domain_id=domain_id, **init_kwargs)
+        self.node = Node(name, namespace=namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._spin_timeout = spin_timeout
+        self._thread = threading.Thread(target=self._spin, name=thread_name, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=self._spin_timeout)
+        except Exception:  # context shut down under us while closing
+            pass
+
+    def close(self) -> None:
+        import rclpy
+
+        try:
+            rclpy.shutdown(context=self.context)
+        except Exception:  # already shut down
+            pass
+        self._thread.join(timeout=5)
+        self.executor.shutdown(timeout_sec=1)
+        self.node.destroy_node()

@@ -23,8 +23,7 @@ import numpy as np
 
 from der_ros.configuration import ConfigError
 from der_ros.replay.base import Batch, ReplayBuffer, register
-from der_ros.replay.storage import RingStorage, describe, storage_bytes
-from der_ros.replay.storage import check_memory as _check_memory
+from der_ros.replay.storage import RingStorage, check_storage_memory
 from der_ros.replay.sum_tree import SumTree
 from der_ros.replay.uniform import check_batch_size
 
@@ -81,7 +80,7 @@ class PrioritizedReplay(ReplayBuffer):
         if not eps > 0:
             raise ConfigError(f"per_eps = {eps}, expected > 0")
         if check_memory:
-            _check_memory(storage_bytes(capacity, obs_shape, obs_dtype), describe(capacity, obs_shape, obs_dtype), available_bytes)
+            check_storage_memory(capacity, obs_shape, obs_dtype, available_bytes)
         self.capacity = int(capacity)
         self.alpha = float(alpha)
         self.beta0 = float(beta0)
@@ -103,14 +102,8 @@ class PrioritizedReplay(ReplayBuffer):
         return self.beta0 + (1.0 - self.beta0) * frac
 
     def add_batch(self, obs, actions, rewards, next_obs, terminated, truncated) -> None:  # noqa: D102
-        fields = self.storage.convert(obs, actions, rewards, next_obs, terminated, truncated)
-        k = fields[0].shape[0]
-        if k > self.capacity:
-            fields = tuple(f[k - self.capacity :] for f in fields)
-            self.storage.skip(k - self.capacity)
-            k = self.capacity
-        slots = self.storage.next_slots(k)
-        self.storage.write(slots, fields)
+        slots = self.storage.append_batch(obs, actions, rewards, next_obs, terminated, truncated)
+        k = slots.size
         self.tree.set(slots, np.full(k, self.max_priority), check=False)
         self.size = min(self.size + k, self.capacity)
 

@@ -17,7 +17,14 @@ import numpy as np
 
 from der_ros.configuration import ConfigError
 
-__all__ = ["RingStorage", "ReplayMemoryError", "storage_bytes", "available_memory_bytes", "check_memory"]
+__all__ = [
+    "RingStorage",
+    "ReplayMemoryError",
+    "storage_bytes",
+    "available_memory_bytes",
+    "check_memory",
+    "check_storage_memory",
+]
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +78,13 @@ def check_memory(
             "lower the capacity (uint8 observations take a quarter of float32 ones)"
         )
     log.debug("replay buffer %s: %d bytes of %d available", what, needed, avail)
+
+
+def check_storage_memory(
+    capacity: int, obs_shape: Sequence[int], obs_dtype: np.dtype | str | type, available: int | None = None
+) -> None:
+    """:func:`check_memory` for a buffer made of one :class:`RingStorage` of ``capacity`` transitions."""
+    check_memory(storage_bytes(capacity, obs_shape, obs_dtype), describe(capacity, obs_shape, obs_dtype), available)
 
 
 class RingStorage:
@@ -179,6 +193,23 @@ class RingStorage:
                 raise ValueError(f"rewards contain non-finite values: {a[~np.isfinite(a)][:3]}")
             out.append(a.astype(dt, copy=False))
         return tuple(out)
+
+    def append_batch(self, *batch: np.ndarray) -> np.ndarray:
+        """Check and convert a batch (the arguments of :meth:`convert`) and write it at the next
+        ring slots (FIFO); returns the slots written.
+
+        With more rows than the capacity only the newest ``capacity`` survive, in the slots
+        repeated single writes would have left them in.
+        """
+        fields = self.convert(*batch)
+        k = fields[0].shape[0]
+        if k > self.capacity:
+            fields = tuple(f[k - self.capacity :] for f in fields)
+            self.skip(k - self.capacity)
+            k = self.capacity
+        slots = self.next_slots(k)
+        self.write(slots, fields)
+        return slots
 
     def next_slot(self) -> int:
         """The next ring slot for one transition, advancing the cursor."""

@@ -10,8 +10,7 @@ import numpy as np
 
 from der_ros.configuration import ConfigError
 from der_ros.replay.base import Batch, ReplayBuffer, register
-from der_ros.replay.storage import RingStorage, describe, storage_bytes
-from der_ros.replay.storage import check_memory as _check_memory
+from der_ros.replay.storage import RingStorage, check_storage_memory
 
 __all__ = ["UniformReplay", "check_batch_size"]
 
@@ -47,22 +46,15 @@ class UniformReplay(ReplayBuffer):
         if int(capacity) <= 0:
             raise ConfigError(f"capacity = {capacity}, expected >= 1")
         if check_memory:
-            _check_memory(storage_bytes(capacity, obs_shape, obs_dtype), describe(capacity, obs_shape, obs_dtype), available_bytes)
+            check_storage_memory(capacity, obs_shape, obs_dtype, available_bytes)
         self.storage = RingStorage(capacity, obs_shape, obs_dtype)
         self.capacity = int(capacity)
         self.size = 0
         self._rng = np.random.default_rng(seed)
 
     def add_batch(self, obs, actions, rewards, next_obs, terminated, truncated) -> None:  # noqa: D102
-        fields = self.storage.convert(obs, actions, rewards, next_obs, terminated, truncated)
-        k = fields[0].shape[0]
-        if k > self.capacity:  # only the newest `capacity` survive a ring of this size
-            fields = tuple(f[k - self.capacity :] for f in fields)
-            self.storage.skip(k - self.capacity)
-            k = self.capacity
-        slots = self.storage.next_slots(k)
-        self.storage.write(slots, fields)
-        self.size = min(self.size + k, self.capacity)
+        slots = self.storage.append_batch(obs, actions, rewards, next_obs, terminated, truncated)
+        self.size = min(self.size + slots.size, self.capacity)
 
     def add(self, obs, action, reward, next_obs, terminated, truncated) -> None:  # noqa: D102
         self.storage.put_one(self.storage.next_slot(), obs, action, reward, next_obs, terminated, truncated)

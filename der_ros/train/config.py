@@ -13,6 +13,7 @@ the file, the section, the key and the value, before anything starts.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from typing import Any
 import yaml
 
 from der_ros.agent.config import DQNConfig
-from der_ros.configuration import ConfigError, from_dict, param, to_dict
+from der_ros.configuration import ConfigError, from_dict, param, read_yaml_mapping, reject_unknown_keys, to_dict
 from der_ros.replay.config import ReplayConfig
 
 __all__ = [
@@ -31,6 +32,8 @@ __all__ = [
     "load_experiment_config",
     "experiment_from_dict",
     "apply_dotted_overrides",
+    "parse_assignments",
+    "add_set_argument",
     "save_experiment_config",
 ]
 
@@ -118,12 +121,7 @@ class ExperimentConfig:
 def experiment_from_dict(data: dict[str, Any] | None, source: str = "config") -> ExperimentConfig:
     """Build an :class:`ExperimentConfig` from ``{section: {key: value}}``; unknown sections are errors."""
     data = dict(data or {})
-    unknown = sorted(set(data) - set(SECTIONS))
-    if unknown:
-        raise ConfigError(
-            f"{source}: unknown section {unknown[0]!r} (value {data[unknown[0]]!r}); "
-            f"known sections: {', '.join(SECTIONS)}"
-        )
+    reject_unknown_keys(data, SECTIONS, source, what="section", known_as="known sections")
     parts = {}
     for name, cls in SECTIONS.items():
         section = data.get(name) or {}
@@ -133,16 +131,36 @@ def experiment_from_dict(data: dict[str, Any] | None, source: str = "config") ->
     return ExperimentConfig(**parts)
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
-    return data
+def parse_assignments(
+    texts: Iterable[str], source: str = "command line", label: str = "override"
+) -> list[tuple[str, Any]]:
+    """``["section.key=yaml-value", ...]`` -> ``[("section.key", value), ...]`` (values parsed as YAML).
+
+    Errors name ``source`` and ``label`` (e.g. ``"command line: --set 'x', expected section.key=value"``).
+    """
+    items: list[tuple[str, Any]] = []
+    for text in texts:
+        if "=" not in text:
+            raise ConfigError(f"{source}: {label} {text!r}, expected section.key=value")
+        key, raw = text.split("=", 1)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{source}: {label} {text!r}: value is not valid YAML: {exc}") from None
+        items.append((key.strip(), value))
+    return items
+
+
+def add_set_argument(parser: Any, help: str = "override any config field; VALUE is YAML (repeatable)") -> None:
+    """The repeatable ``--set SECTION.KEY=VALUE`` flag (collected in ``args.set_values``)."""
+    parser.add_argument(
+        "--set",
+        dest="set_values",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help=help,
+    )
 
 
 def apply_dotted_overrides(
@@ -154,20 +172,7 @@ def apply_dotted_overrides(
     sections and keys are reported by the later validation, naming ``source``.
     """
     out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
-    items: list[tuple[str, Any]]
-    if isinstance(overrides, dict):
-        items = list(overrides.items())
-    else:
-        items = []
-        for text in overrides:
-            if "=" not in text:
-                raise ConfigError(f"{source}: override {text!r}, expected section.key=value")
-            key, raw = text.split("=", 1)
-            try:
-                value = yaml.safe_load(raw)
-            except yaml.YAMLError as exc:
-                raise ConfigError(f"{source}: override {text!r}: value is not valid YAML: {exc}") from None
-            items.append((key.strip(), value))
+    items = list(overrides.items()) if isinstance(overrides, dict) else parse_assignments(overrides, source)
     for key, value in items:
         if value is None and isinstance(overrides, dict):
             continue
@@ -200,7 +205,7 @@ def load_experiment_config(
         source = "defaults"
     else:
         path = Path(path)
-        data = _read_yaml(path)
+        data = read_yaml_mapping(path, expected="a mapping of sections")
         source = str(path)
     experiment_from_dict(data, source=source)  # errors in the file itself name the file
     if overrides:

@@ -24,6 +24,7 @@ from der_ros.configuration import ConfigError, add_dataclass_arguments, field_sp
 from der_ros.train.config import (
     SECTIONS,
     ExperimentConfig,
+    add_set_argument,
     apply_dotted_overrides,
     experiment_from_dict,
     load_experiment_config,
@@ -55,14 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--run-dir", dest="run_dir", default=None, help="output folder (default runs/<env>-<replay>-<seed>-<time>)"
     )
     parser.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
-    parser.add_argument(
-        "--set",
-        dest="set_values",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override any config field; VALUE is YAML (repeatable)",
-    )
+    add_set_argument(parser)
     for section, cls in SECTIONS.items():
         group = parser.add_argument_group(f"{section} section (per-field overrides)")
         add_dataclass_arguments(group, cls, prefix=f"{section}_")  # type: ignore[arg-type]
