@@ -126,7 +126,8 @@ def plot_td_traces(
     ax_td.legend(fontsize=8)
     ax_w.set_title("(b) mean H2 sampling weight p (eq. 3)")
     ax_w.set_xlabel("environment steps")
-    ax_w.set_ylabel("p")
+    ax_w.set_ylabel("p (log scale)")
+    ax_w.set_yscale("log")  # p = e^|delta| spans many decades; the baseline is 1
     ax_w.grid(alpha=0.3)
     if any_weight:
         ax_w.legend(fontsize=8)

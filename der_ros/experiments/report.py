@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["run_details", "write_markdown"]
+__all__ = ["run_details", "total_training_time", "write_markdown"]
 
 
 def run_details(
@@ -37,7 +37,7 @@ def run_details(
         f"- command: `{command}`",
         seeds_line,
         *steps_lines,
-        f"- suite wall time: {wall_s / 60:.1f} min",
+        f"- training time: {wall_s / 60:.1f} min (sum of the runs' own wall times; the same on a rerun that skips them)",
         *[f"- {k}: {v}" for k, v in info.items()],
         "",
         "## Per seed",
@@ -54,3 +54,16 @@ def write_markdown(path: Path, lines: Sequence[str]) -> Path:
     tmp.write_text("\n".join(lines))
     tmp.replace(path)
     return path
+
+
+def total_training_time(results: object) -> float:
+    """Sum of ``summary["wall_time_s"]`` over every run result in nested dicts/lists of RunResults.
+
+    Unlike the suite's elapsed time, this survives a rerun that only rebuilds the report.
+    """
+    if isinstance(results, Mapping):
+        return sum(total_training_time(v) for v in results.values())
+    if isinstance(results, (list, tuple)):
+        return sum(total_training_time(v) for v in results)
+    summary = getattr(results, "summary", None)
+    return float(summary.get("wall_time_s", 0.0)) if isinstance(summary, Mapping) else 0.0

@@ -16,12 +16,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from der_ros.experiments.plots import plot_learning_curves, plot_td_traces
-from der_ros.experiments.report import run_details, write_markdown
+from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import CI, average_score, bootstrap_ci, max_moving_average
 from der_ros.experiments.suite import (
     RunResult,
@@ -112,9 +111,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
-    t0 = time.perf_counter()
     summaries = run_specs(specs, args.jobs)
-    wall = time.perf_counter() - t0
     if report_interrupted("table1", summaries):
         return 130
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}
@@ -123,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     labels = {m.name: m.label for m in methods}
     steps = max(int(r.summary["steps"]) for runs in results.values() for r in runs)
     out = Path(args.results)
-    md = write_table1(results, labels, out / "table1.md", suite_command("table1", args), seeds, steps, wall)
+    md = write_table1(results, labels, out / "table1.md", suite_command("table1", args), seeds, steps, total_training_time(results))
     plot_learning_curves(results, labels, out / "table1_curves.png", window=20, title="CartPole-v1 (Fig. 1 style)")
     plot_td_traces(results, labels, out / "table1_td.png", title="CartPole-v1 (Fig. 2 style)")
     print(md.read_text())

@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from der_ros.experiments.plots import plot_learning_curves, save_figure
-from der_ros.experiments.report import run_details, write_markdown
+from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,
@@ -123,9 +122,7 @@ def run(args: argparse.Namespace) -> int:
     for game, env_id in games.items():
         specs += plan_runs(args.config, methods, seeds, args.out, {**base, "env.id": env_id}, group=_game_key(game))
     jobs = args.jobs or default_atari_jobs(specs)
-    t0 = time.perf_counter()
     summaries = run_specs(specs, jobs)
-    wall = time.perf_counter() - t0
     if report_interrupted("table2", summaries):
         return 130
 
@@ -145,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     save_figure(fig, out / "table2_curves.png", dpi=110)
 
     extra = ["--games", *[_game_key(g) for g in games]] if args.games else []
-    md = _write_table2(results, labels, out / "table2.md", suite_command("table2", args, extra), seeds, wall)
+    md = _write_table2(results, labels, out / "table2.md", suite_command("table2", args, extra), seeds, total_training_time(results))
     print(md.read_text())
     print(f"wrote {md}, {out / 'table2_curves.png'}")
     return 0

@@ -25,14 +25,13 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from der_ros.experiments.plots import plot_learning_curves
-from der_ros.experiments.report import run_details, write_markdown
+from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import CI, average_score, bootstrap_ci, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,
@@ -163,9 +162,7 @@ def run(args: argparse.Namespace) -> int:
     specs: list[RunSpec] = []
     for net in args.networks:
         specs += plan_runs(configs[net], methods, seeds, args.out, overrides, group=net)
-    t0 = time.perf_counter()
     run_specs(specs, args.jobs)
-    wall = time.perf_counter() - t0
     results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in methods} for net in args.networks}
     for spec in specs:
         results[spec.group][spec.method.name].append(load_result(spec, EVENT_METRICS))
@@ -175,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
     }
     out = Path(args.results)
     extra = ["--urban-config", str(args.urban_config), "--networks", *args.networks]
-    md = write_table3(results, labels, out / "table3.md", suite_command("table3", args, extra), seeds, steps, wall)
+    md = write_table3(results, labels, out / "table3.md", suite_command("table3", args, extra), seeds, steps, total_training_time(results))
     figures = []
     for net, by_method in results.items():
         fig = out / f"table3_{net}_curves.png"
