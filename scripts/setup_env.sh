@@ -13,7 +13,11 @@ echo "[setup] creating/updating $VENV (first run takes a few minutes)" >&2
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install --quiet --upgrade pip
 "$VENV/bin/python" -m pip install --quiet -c constraints.txt -r requirements.txt -r requirements-dev.txt
-"$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e .
+# setuptools warns about editable installs on stderr; keep that out of the way unless it fails
+if ! "$VENV/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e . > "$VENV/.der_editable.log" 2>&1; then
+  cat "$VENV/.der_editable.log" >&2
+  exit 1
+fi
 "$VENV/bin/python" -c "import rclpy, libsumo, torch, der_ros" >/dev/null
 echo "$stamp_src" > "$VENV/.der_stamp"
 echo "[setup] done" >&2

@@ -444,11 +444,14 @@ def _report(outcome: RunOutcome, snap: Any, run_dir: Path, wall: float, args: ar
                 rows.append((name, f"{snap.metrics[name]:.4g}"))
         for k, v in rows:
             table.add_row(k, v)
-    table.add_row("bag", summary["bag"] or "-")
-    table.add_row("checkpoint", summary["checkpoint"] or "-")
-    table.add_row("plots", ", ".join(summary["plots"]) or "-")
-    table.add_row("logs", summary["logs"])
     console.print(table)
+    # Paths go below the table, one per line and never shortened (a narrow or non-tty console
+    # would truncate them inside table cells).
+    print(f"  bag:        {summary['bag'] or '-'}")
+    print(f"  checkpoint: {summary['checkpoint'] or '-'}")
+    for i, plot in enumerate(summary["plots"] or ["-"]):
+        print(f"  {'plots:' if i == 0 else '':<11} {plot}")
+    print(f"  logs:       {summary['logs']}")
     if outcome.ok:
         return 0
     if outcome.reason == "interrupted":
