@@ -263,12 +263,13 @@ def torchrl_der(data):
             idx2 = s2["index"].numpy().astype(np.int64)
             w = d2 * d2 / np.dot(d2, d2)
             logw[idx2] *= w
-            h2.update_priority(torch.from_numpy(idx2), torch.from_numpy(np.exp(logw[idx2])))
+            h2.update_priority(torch.from_numpy(idx2), torch.from_numpy(np.exp(logw[idx2]).astype(np.float32)))
         lw = np.minimum(d1, 50.0)
         s1 = s1.exclude("index")
-        s1.set("td_error", torch.from_numpy(np.exp(lw)))
-        idx = h2.extend(s1)
-        logw[np.asarray(idx, dtype=np.int64)] = lw
+        idx = h2.extend(s1, update_priority=False)  # promotion: priority e^|delta| set explicitly
+        idx = np.asarray(idx, dtype=np.int64)
+        h2.update_priority(torch.from_numpy(idx), torch.from_numpy(np.exp(lw).astype(np.float32)))
+        logw[idx] = lw
 
     while len(h2) < N2:
         step()
