@@ -9,7 +9,13 @@
   loopback socket);
 * ``reset_ms``: mean ``reset()`` time on the ring (load + placement + 5 s warm-up);
 * ``traci_getters_steps_per_s`` (peer): a plain traci loop reading the same quantities with one
-  getter call each (neighbour getters, every vehicle's speed), i.e. without our subscriptions.
+  getter call each (neighbour getters, every vehicle's speed), i.e. without our subscriptions;
+* ``raw_over_traci``: raw libsumo steps/s over traci env steps/s, the ceiling of
+  ``env_over_traci`` (what an env with no per-step work at all beside the simulation step would
+  reach on this machine);
+* ``default_*``: the same libsumo / traci comparison at the scenario's default
+  ``decision_interval`` (5 SUMO steps per decision, what training uses), in simulated steps per
+  second so it compares with ``raw_steps_per_s``.
 
 All four are measured in interleaved rounds (the load of a shared machine drifts); the medians
 of the per-round rates and ratios are reported. The traci env runs beside the libsumo one (its
@@ -115,8 +121,29 @@ def speed(rounds: int, chunk: int, traci_chunk: int) -> dict[str, float]:
     finally:
         lib.close()
         tra.close()
+    # the default decision interval, in simulated steps per second (a decision every di steps)
+    lib = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=100_000))
+    tra = LaneChangeEnv(ScenarioConfig.ring(backend="traci", max_episode_steps=100_000))
+    di = lib.config.decision_interval
+    d_raw, d_env, d_traci = [], [], []
+    try:
+        for k in range(rounds):
+            d_raw.append(chunk / _chunk_raw(lib, chunk, seed=k))
+            d_env.append(chunk / _chunk_env(lib, chunk // di, rng, seed=k))
+            d_traci.append(traci_chunk / _chunk_env(tra, traci_chunk // di, rng, seed=k))
+    finally:
+        lib.close()
+        tra.close()
     med = statistics.median
     return {
+        "decision_interval": di,
+        "default_raw": med(d_raw),
+        "default_env": med(d_env),
+        "default_traci": med(d_traci),
+        "default_env_over_raw": med([e / r for e, r in zip(d_env, d_raw)]),
+        "default_env_over_traci": med([e / t for e, t in zip(d_env, d_traci)]),
+        "default_raw_over_traci": med([r / t for r, t in zip(d_raw, d_traci)]),
+        "raw_over_traci": med([r / t for r, t in zip(raw, traci_r)]),
         "raw": med(raw),
         "env": med(env_r),
         "traci": med(traci_r),
@@ -171,7 +198,12 @@ def main() -> int:
     print(f"{'env step / s (libsumo)':<34}{m['env']:>12.0f}   {m['env_over_raw']:.2f} x raw")
     print(f"{'env step / s (traci)':<34}{m['traci']:>12.0f}   libsumo env is {m['env_over_traci']:.1f} x")
     print(f"{'peer: traci with getters / s':<34}{m['getters']:>12.0f}   libsumo env is {m['env_over_getters']:.1f} x")
+    print(f"{'ceiling: raw libsumo / traci env':<34}{m['raw_over_traci']:>12.2f}   (an env that only steps SUMO)")
     print(f"{'reset ms (libsumo / traci)':<34}{m['reset_ms']:>12.2f}   {m['traci_reset_ms']:.2f}")
+    print(f"\ndefault decision_interval={m['decision_interval']}, simulated steps / s")
+    print(f"{'env (libsumo)':<34}{m['default_env']:>12.0f}   {m['default_env_over_raw']:.2f} x raw ({m['default_raw']:.0f})")
+    print(f"{'env (traci)':<34}{m['default_traci']:>12.0f}   libsumo env is {m['default_env_over_traci']:.1f} x"
+          f" (ceiling {m['default_raw_over_traci']:.2f})")
 
     result: dict[str, object] = {
         "raw_steps_per_s": round(m["raw"], 1),
@@ -183,6 +215,14 @@ def main() -> int:
         "traci_getters_steps_per_s": round(m["getters"], 1),
         "env_over_traci_getters": round(m["env_over_getters"], 2),
         "traci_reset_ms": round(m["traci_reset_ms"], 3),
+        "raw_over_traci": round(m["raw_over_traci"], 2),
+        "decision_interval_default": m["decision_interval"],
+        "default_raw_steps_per_s": round(m["default_raw"], 1),
+        "default_env_sim_steps_per_s": round(m["default_env"], 1),
+        "default_traci_env_sim_steps_per_s": round(m["default_traci"], 1),
+        "default_env_over_raw": round(m["default_env_over_raw"], 3),
+        "default_env_over_traci": round(m["default_env_over_traci"], 2),
+        "default_raw_over_traci": round(m["default_raw_over_traci"], 2),
     }
     if not args.no_policies:
         policies: dict[str, Callable[[np.ndarray], int]] = {

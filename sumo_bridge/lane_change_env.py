@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 from typing import Any
 
 import gymnasium as gym
@@ -79,6 +80,7 @@ from sumo_bridge.observation import (
     SLOT_NAMES,
     empty_points,
     encode_observation,
+    encode_point_rows,
     observation_space,
 )
 from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
@@ -92,17 +94,12 @@ __all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "EVENTS", "ACTION
 EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit")
 ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
 
-_C = {name: i for i, name in enumerate(POINT_FIELDS)}
-_SLOT = {name: i for i, name in enumerate(SLOT_NAMES)}
-#: lane offset (other - ego) -> (leader slot, follower slot)
-_LANE_SLOTS = {0: (_SLOT["leader"], _SLOT["follower"]), 1: (_SLOT["left_leader"], _SLOT["left_follower"]),
-               -1: (_SLOT["right_leader"], _SLOT["right_follower"])}  # fmt: skip
-
 _tc = constants()
 _V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD = _tc.VAR_SPEED, _tc.VAR_LANE_INDEX, _tc.VAR_LANEPOSITION, _tc.VAR_ROAD_ID
 _V_POS, _V_ANGLE, _V_LENGTH = _tc.VAR_POSITION, _tc.VAR_ANGLE, _tc.VAR_LENGTH
 _V_DEPARTED, _V_COLLIDING = _tc.VAR_DEPARTED_VEHICLES_IDS, _tc.VAR_COLLIDING_VEHICLES_NUMBER
 _SPEED_ONLY = [_V_SPEED]
+_GET_SPEED = operator.itemgetter(_V_SPEED)
 _CTX_VARS = [_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD, _V_POS, _V_ANGLE, _V_LENGTH]
 # _points_from_context writes rows in this order
 assert POINT_FIELDS == ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot",
@@ -145,7 +142,10 @@ class LaneChangeEnv(gym.Env):
         self._ego_present = False
         self._colliding = False
         self._points = empty_points()
-        self._slot_ids: dict[str, str] = {}
+        self._obs = encode_observation(self._points, cfg.observation)
+        self._ego_lane = 0  # lane index and lane count of the ego in the last points
+        self._ego_lane_count = 0
+        self._slots: list[tuple[float, str, dict[int, Any]] | None] = [None] * len(SLOT_NAMES)
         self._ego_xy_angle = (0.0, 0.0, 0.0)
         self._reset_episode_state()
 
@@ -234,9 +234,9 @@ class LaneChangeEnv(gym.Env):
             self._reset_ring()
         else:
             self._reset_urban()
-        self._points = self._read_points()
+        self._read_points()
         info = self._info(event=None, mean_speed=self._mean_speed())
-        return encode_observation(self._points, self.config.observation), info
+        return self._obs, info
 
     def _load(self) -> None:
         assert self._rng is not None
@@ -388,15 +388,14 @@ class LaneChangeEnv(gym.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() called after the episode ended; call reset()")
-        if action not in (0, 1, 2) or isinstance(action, bool):
-            raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
+        if type(action) is not int or not 0 <= action <= 2:  # fast path for plain ints
+            if action not in (0, 1, 2) or isinstance(action, bool):
+                raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
         cfg, api = self.config, self.api
         a = int(action)
-        ego = self._points[0]
         if a != 0:
-            lane, n_lanes = int(ego[_C["lane"]]), int(ego[_C["lane_count"]])
-            new_lane = lane + 1 if a == 1 else lane - 1
-            if 0 <= new_lane < n_lanes:
+            new_lane = self._ego_lane + 1 if a == 1 else self._ego_lane - 1
+            if 0 <= new_lane < self._ego_lane_count:
                 api.vehicle.changeLane(self.ego_id, new_lane, self.step_seconds)
                 self._last_change_substep = self._substep
                 self._lane_changes += 1
@@ -415,7 +414,7 @@ class LaneChangeEnv(gym.Env):
         ctx = api.vehicle.getContextSubscriptionResults(self.ego_id)
         ego_gone = not ctx or self.ego_id not in ctx
         if not ego_gone:
-            self._points = self._points_from_context(ctx)
+            self._points_from_context(ctx)
         mean_speed = self._mean_speed()
         reward = math.log(max(mean_speed, cfg.min_speed))
         terminated = truncated = False
@@ -428,7 +427,7 @@ class LaneChangeEnv(gym.Env):
             )
             if caused:
                 reward += cfg.reward_collision
-        elif not ego_gone and int(self._points[0, _C["lane"]]) == cfg.target:
+        elif not ego_gone and self._ego_lane == cfg.target:
             if self._on_target_since is None:
                 changed_now = self._last_change_substep is not None and self._last_change_substep >= self._substep - cfg.decision_interval
                 self._on_target_since = self._last_change_substep + 1 if changed_now else self._substep
@@ -444,7 +443,7 @@ class LaneChangeEnv(gym.Env):
             self._ego_present = False
         info = self._info(event=event, mean_speed=mean_speed)
         info["caused"] = caused
-        return encode_observation(self._points, cfg.observation), float(reward), terminated, truncated, info
+        return self._obs, float(reward), terminated, truncated, info
 
     # ------------------------------------------------------------------ state reading
     def _sim_step(self) -> None:
@@ -468,13 +467,13 @@ class LaneChangeEnv(gym.Env):
         if not results:
             return 0.0
         # fsum: exact, so the result does not depend on the order the backend returns vehicles in
-        return math.fsum(r[_V_SPEED] for r in results.values()) / len(results)
+        return math.fsum(map(_GET_SPEED, results.values())) / len(results)
 
-    def _read_points(self) -> np.ndarray:
+    def _read_points(self) -> None:
         ctx = self.api.vehicle.getContextSubscriptionResults(self.ego_id)
         if not ctx or self.ego_id not in ctx:
             raise RuntimeError(f"ego vehicle {self.ego_id!r} is not in the simulation after reset")
-        return self._points_from_context(ctx)
+        self._points_from_context(ctx)
 
     def _longitudinal(self, ego_road: str, ego_pos: float, road: str, pos: float) -> float | None:
         """Signed front-to-front distance along the road (positive: ``road/pos`` is ahead)."""
@@ -494,41 +493,69 @@ class LaneChangeEnv(gym.Env):
             return -behind
         return None
 
-    def _points_from_context(self, ctx: dict[str, dict[int, Any]]) -> np.ndarray:
-        """The points (see :mod:`sumo_bridge.observation`) from one context-subscription result.
+    def _points_from_context(self, ctx: dict[str, dict[int, Any]]) -> None:
+        """Points (see :mod:`sumo_bridge.observation`) and observation from one context result.
 
-        Built as Python lists and converted once: per-element numpy writes would cost more than
-        the simulation step itself at decision_interval=1.
+        Sets ``self._points``, ``self._obs``, the ego's lane/lane count and the slot choice.
+        This runs once per env step, so it is written for speed: rows are built as Python lists,
+        encoded with :func:`~sumo_bridge.observation.encode_point_rows` and converted to an
+        array once (per-element numpy writes would cost more than a SUMO step), and the
+        along-road distance is inlined for roads of the corridor.
         """
         cfg = self.config
-        ego = ctx[self.ego_id]
+        ego_id = self.ego_id
+        ego = ctx[ego_id]
         ego_road, ego_pos = ego[_V_ROAD], ego[_V_LANEPOS]
         ego_lane, ego_speed, ego_len = ego[_V_LANE], ego[_V_SPEED], ego[_V_LENGTH]
+        n_lanes = self._lane_count(ego_road)
+        rng_max = cfg.observation.neighbour_range
+        offsets = self._offsets
+        ego_off = offsets.get(ego_road)
+        ego_s = None if ego_off is None else ego_off + ego_pos
+        closed, lap = self._closed_corridor, self._loop_length
+        half = 0.5 * lap
+        has_left, has_right = ego_lane + 1 < n_lanes, ego_lane > 0
+        best: list[tuple[float, str, dict[int, Any]] | None] = [None] * len(SLOT_NAMES)
+        for vid, var in ctx.items():
+            offset = var[_V_LANE] - ego_lane
+            if offset == 0:
+                if vid == ego_id:
+                    continue
+                lead = 0
+            elif offset == 1:
+                if not has_left:
+                    continue
+                lead = 2
+            elif offset == -1:
+                if not has_right:
+                    continue
+                lead = 4
+            else:
+                continue
+            # signed front-to-front distance along the road (positive: ahead of the ego)
+            road_off = offsets.get(var[_V_ROAD]) if ego_s is not None else None
+            if road_off is not None:
+                d = (road_off + var[_V_LANEPOS]) - ego_s
+                if closed:
+                    d = (d + half) % lap - half
+            else:
+                d = self._longitudinal(ego_road, ego_pos, var[_V_ROAD], var[_V_LANEPOS])
+                if d is None:
+                    continue
+            if d > 0.0:
+                slot, gap = lead, d - var[_V_LENGTH]
+            else:
+                slot, gap = lead + 1, -d - ego_len
+            if gap <= rng_max:
+                hit = best[slot]
+                if hit is None or gap < hit[0]:
+                    best[slot] = (gap, vid, var)
         ex, ey = ego[_V_POS]
         heading = math.radians(ego[_V_ANGLE])
         fx, fy = math.sin(heading), math.cos(heading)  # SUMO angle: degrees clockwise from north
-        n_lanes = self._lane_count(ego_road)
-        best: dict[int, tuple[float, str, dict[int, Any]]] = {}
-        rng_max = cfg.observation.neighbour_range
-        for vid, var in ctx.items():
-            if vid == self.ego_id:
-                continue
-            offset = var[_V_LANE] - ego_lane
-            if offset not in _LANE_SLOTS or (offset == 1 and ego_lane + 1 >= n_lanes) or (offset == -1 and ego_lane == 0):
-                continue
-            d = self._longitudinal(ego_road, ego_pos, var[_V_ROAD], var[_V_LANEPOS])
-            if d is None:
-                continue
-            if d > 0.0:
-                slot, gap = _LANE_SLOTS[offset][0], d - var[_V_LENGTH]
-            else:
-                slot, gap = _LANE_SLOTS[offset][1], -d - ego_len
-            if gap <= rng_max and (slot not in best or gap < best[slot][0]):
-                best[slot] = (gap, vid, var)
         # rows in POINT_FIELDS order: x y z speed rel_speed gap lane target_lane present slot lane_count length
         rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
-        for slot in range(len(SLOT_NAMES)):
-            hit = best.get(slot)
+        for slot, hit in enumerate(best):
             if hit is None:
                 rows.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, -1.0, 0.0, slot + 1.0, 0.0, 0.0])
                 continue
@@ -538,13 +565,15 @@ class LaneChangeEnv(gym.Env):
             speed = var[_V_SPEED]
             rows.append([dx * fx + dy * fy, -dx * fy + dy * fx, 0.0, speed, speed - ego_speed, gap, var[_V_LANE],
                          -1.0, 1.0, slot + 1.0, self._lane_count(var[_V_ROAD]), var[_V_LENGTH]])  # fmt: skip
-        self._slot_ids = {SLOT_NAMES[slot]: vid for slot, (_gap, vid, _var) in best.items()}
+        self._slots = best
+        self._ego_lane, self._ego_lane_count = int(ego_lane), n_lanes
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
-        return np.array(rows, dtype=np.float64)
+        self._obs = encode_point_rows(rows, cfg.observation)
+        self._points = np.array(rows, dtype=np.float64)
 
     def neighbour_ids(self) -> dict[str, str | None]:
         """Vehicle id in each slot of the last points (for tests and debugging; not observed)."""
-        return {name: self._slot_ids.get(name) for name in SLOT_NAMES}
+        return {name: (None if hit is None else hit[1]) for name, hit in zip(SLOT_NAMES, self._slots)}
 
     def _info(self, event: str | None, mean_speed: float) -> dict[str, Any]:
         x, y, angle = self._ego_xy_angle
@@ -554,7 +583,7 @@ class LaneChangeEnv(gym.Env):
             "mean_speed": mean_speed,
             "episode_step": self._episode_step,
             "sim_time": self._substep * self.config.step_length,
-            "lane": int(self._points[0, _C["lane"]]),
+            "lane": self._ego_lane,
             "position": (x, y),
             "angle": angle,
             "lane_changes": self._lane_changes,

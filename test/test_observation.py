@@ -1,0 +1,71 @@
+"""The observation encoder: the env's list route equals the array route bit for bit, and both
+equal a plain numpy statement of the documented formula (sumo_bridge/observation.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sumo_bridge.observation import (
+    POINT_FIELDS,
+    SLOT_NAMES,
+    ObservationConfig,
+    empty_points,
+    encode_observation,
+    encode_point_rows,
+    field_index,
+    observation_size,
+)
+
+C = {name: field_index(name) for name in POINT_FIELDS}
+
+
+def _reference(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
+    """The module docstring's formula, written with numpy (independent of the fast code)."""
+    ego = points[0]
+    lane = ego[C["lane"]]
+    out = [
+        np.clip(ego[C["speed"]] / cfg.speed_scale, 0.0, 1.0),
+        np.clip(lane / (cfg.max_lanes - 1), 0.0, 1.0),
+        np.clip(ego[C["target_lane"]] - lane, -1.0, 1.0),
+        float(lane < ego[C["lane_count"]] - 1),
+        float(lane > 0),
+    ]
+    for row in points[1:]:
+        if row[C["present"]] > 0.5:
+            out += [1.0, np.clip(row[C["gap"]] / cfg.neighbour_range, -1.0, 1.0),
+                    np.clip(row[C["rel_speed"]] / cfg.speed_scale, -1.0, 1.0)]  # fmt: skip
+        else:
+            out += [0.0, 1.0, 0.0]
+    return np.array(out, dtype=np.float32)
+
+
+def _random_points(rng: np.random.Generator) -> np.ndarray:
+    pts = empty_points()
+    pts[0, C["speed"]] = rng.choice([rng.uniform(-5, 40), 0.0, -0.0, 20.0])
+    pts[0, C["lane"]] = rng.integers(0, 4)
+    pts[0, C["target_lane"]] = rng.integers(0, 4)
+    pts[0, C["lane_count"]] = rng.integers(1, 5)
+    for i in range(1, 1 + len(SLOT_NAMES)):
+        if rng.random() < 0.7:
+            pts[i, C["present"]] = 1.0
+            pts[i, C["gap"]] = rng.choice([rng.uniform(-10, 60), 30.0, -30.0, 0.0, -0.0, np.nan])
+            pts[i, C["rel_speed"]] = rng.choice([rng.uniform(-40, 40), 20.0, -20.0, -0.0, np.inf])
+    return pts
+
+
+@pytest.mark.parametrize("cfg", [ObservationConfig(), ObservationConfig(neighbour_range=12.5, speed_scale=7.0, max_lanes=5)])
+def test_list_route_equals_array_route_and_the_formula(cfg: ObservationConfig) -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        pts = _random_points(rng)
+        via_array = encode_observation(pts, cfg)
+        via_rows = encode_point_rows(pts.tolist(), cfg)
+        assert via_array.dtype == np.float32 and via_array.shape == (observation_size(),)
+        assert via_rows.tobytes() == via_array.tobytes()  # same arithmetic: bit for bit
+        assert np.array_equal(via_array, _reference(pts, cfg), equal_nan=True), pts
+
+
+def test_wrong_shape_is_rejected_with_the_expected_shape() -> None:
+    with pytest.raises(ValueError, match=r"shape \(6, 12\), expected \(7, 12\)"):
+        encode_observation(np.zeros((6, 12)), ObservationConfig())
