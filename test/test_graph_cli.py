@@ -153,6 +153,42 @@ def test_a_dying_node_fails_the_run_and_is_named(ros_domain: int, tmp_path: Path
     assert summary["exit_codes"]["recorder_node"] == 0 and summary["exit_codes"]["bridge_node"] == 0
 
 
+def _running(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie left for init to reap counts as gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return fields[0] not in ("Z", "X")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux-only")
+def test_nodes_stop_when_the_runner_is_sigkilled(ros_domain: int, tmp_path: Path) -> None:
+    """kill -9 of `der graph` cannot stop anybody in order; the nodes still get SIGTERM and shut down."""
+    run_dir = tmp_path / "run"
+    proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
+    try:
+        bag = run_dir / "bag"
+        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 5, 120,
+                   "states in the bag", proc)
+        pids = json.loads((run_dir / "pids.json").read_text())
+        assert set(pids) == {"recorder_node", "agent_node", "bridge_node"}
+        assert all(_running(pid) for pid in pids.values())
+        os.kill(proc.pid, signal.SIGKILL)  # the runner only: the nodes are in sessions of their own
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 60
+        while any(_running(pid) for pid in pids.values()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        left = {name: pid for name, pid in pids.items() if _running(pid)}
+    finally:
+        reap(proc, run_dir)
+    assert not left, f"nodes still running 60 s after the runner was killed: {left}"
+    # they stopped through their SIGTERM path: the bag is finalised and the agent saved
+    assert bag_meta(run_dir / "bag")["custom_data"][FINALIZED_KEY] == "true"
+    assert (run_dir / "agent.pt").is_file()
+    assert "SIGTERM" in (run_dir / "logs" / "agent_node.log").read_text()
+
+
 def test_composed_mode_runs_the_same_graph_in_one_process(ros_domain: int, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     proc = der_graph(run_dir, ros_domain, "--steps", "40", "--composed", "--no-plots")

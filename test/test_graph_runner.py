@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
+import subprocess
 import sys
 import textwrap
 import time
@@ -124,3 +126,21 @@ def test_domain_ids_and_environment() -> None:
     env = ros_environment(7, {"PATH": "/bin", "ROS_LOCALHOST_ONLY": "1"})
     assert env["ROS_DOMAIN_ID"] == "7" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert "ROS_LOCALHOST_ONLY" not in env and env["PATH"] == "/bin"
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [("self", "True"), ("1", "False"), (None, "True"), ("not-a-pid", "True")],
+    ids=["supervisor-alive", "supervisor-gone", "no-supervisor", "garbage"],
+)
+def test_stop_with_supervisor_reports_a_supervisor_that_is_already_gone(value: str | None, expected: str) -> None:
+    """A child whose parent is not the pid it was given (the supervisor died before the child
+    could ask for PR_SET_PDEATHSIG) must be told to stop at once."""
+    from der_ros.graph.orphans import SUPERVISOR_PID_ENV
+
+    env = {k: v for k, v in os.environ.items() if k != SUPERVISOR_PID_ENV}
+    if value is not None:
+        env[SUPERVISOR_PID_ENV] = str(os.getpid()) if value == "self" else value
+    code = "from der_ros.graph.orphans import stop_with_supervisor as s; print(s())"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == (expected if sys.platform.startswith("linux") else "True")

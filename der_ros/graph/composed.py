@@ -15,6 +15,8 @@ import sys
 import time
 from typing import Any
 
+from der_ros.graph.orphans import stop_with_supervisor
+
 __all__ = ["main"]
 
 log = logging.getLogger("der_graph_composed")
@@ -38,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if not stop_with_supervisor():  # SIGTERM when `der graph` dies, even by SIGKILL
+        stop["reason"] = "supervisor gone"
     nodes: list[Any] = []
     try:
         for cls in (RecorderNode, AgentNode, BridgeNode):  # recorder first: subscribed before data flows

@@ -14,6 +14,8 @@ Why a supervisor of its own: the ROS ``launch`` package is not available from Py
   child, its exit code and the tail of its log.
 
 Pids are written to ``<run_dir>/pids.json`` (name -> pid) so tests and users can find the nodes.
+Children get the supervisor's pid in ``DER_ROS_SUPERVISOR_PID``; the node executables use it to
+stop (SIGTERM) if the supervisor itself is killed (:mod:`der_ros.graph.orphans`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from der_ros.graph.orphans import SUPERVISOR_PID_ENV
 
 __all__ = [
     "ProcessSpec",
@@ -124,9 +128,11 @@ class ManagedProcess:
         self.name = spec.name
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in close()
+        env = dict(spec.env if spec.env is not None else os.environ)
+        env[SUPERVISOR_PID_ENV] = str(os.getpid())  # the node stops if we die (der_ros.graph.orphans)
         self.proc = subprocess.Popen(
             spec.argv,
-            env=dict(spec.env) if spec.env is not None else None,
+            env=env,
             stdout=self._log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,

@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
+from der_ros.graph.orphans import stop_with_supervisor
+
 __all__ = ["BackgroundNode", "ManagedNode", "run_node"]
 
 
@@ -50,6 +52,8 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if not stop_with_supervisor():  # SIGTERM when `der graph` dies, even by SIGKILL
+        stop["reason"] = "supervisor gone"
     try:
         node = factory()
     except (ConfigError, ValueError) as exc:
