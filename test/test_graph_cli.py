@@ -110,6 +110,34 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # step keys t_k, in order
 
 
+def test_free_run_graph_with_the_real_agent_learns_and_records(ros_domain: int, tmp_path: Path) -> None:
+    """--free-run: the bridge steps on its timer (5x real time: a step every 0.1 s) and applies the
+    agent's latest command; the real agent keeps up, stores every step and learns."""
+    run_dir = tmp_path / "run"
+    steps = 80
+    overrides = ["bridge_node:real_time_factor=5.0", "agent_node:agent.learning_starts=20", "agent_node:agent.batch_size=16"]
+    proc = der_graph(run_dir, ros_domain, "--steps", str(steps), "--free-run", "--no-plots",
+                     *(arg for o in overrides for arg in ("-p", o)))  # fmt: skip
+    try:
+        out, _ = proc.communicate(timeout=150)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 0, out
+    params = yaml.safe_load((run_dir / "params.yaml").read_text())
+    assert params["bridge_node"]["ros__parameters"]["mode"] == "free_run"
+    bridge_log = (run_dir / "logs" / "bridge_node.log").read_text()
+    bridge = json.loads(re.search(r"bridge summary: (\{.*\})", bridge_log).group(1))
+    assert bridge["sim_steps"] == steps
+    # the timer did not wait for the agent, yet the agent answered (almost) every step in time
+    assert bridge["commands/accepted"] >= 0.8 * steps, bridge
+    metrics = json.loads((run_dir / "summary.json").read_text())["metrics"]
+    assert metrics["online/transitions"] == steps  # one stored transition per bridge step
+    assert metrics["online/learn_steps"] > 0
+    meta = bag_meta(run_dir / "bag")
+    assert meta["custom_data"][FINALIZED_KEY] == "true"
+    assert counts(meta)["/state"] == int(bridge["published_states"])
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Path, sig: int) -> None:
     run_dir = tmp_path / "run"
