@@ -304,9 +304,12 @@ class LaneChangeEnv(gym.Env):
         self._warmup(cfg.urban_ego_gap_seconds)
         if self._insert_urban_ego():
             return
-        # The start lane stayed blocked (e.g. a jam left by earlier episodes): start over from a
-        # fresh, warmed-up simulation rather than failing a long training run.
-        log.warning("ego could not be inserted on the bridge after 20 attempts; reloading the simulation")
+        # No attempt found room. Seen about once per ~900 episodes: not a jam but a dense platoon
+        # of the main northbound flow (vehicles at ~13 m/s, ~20 m apart over the whole insertion
+        # window), where SUMO finds no safe insertion gap. Start over from a fresh, warmed-up
+        # simulation rather than failing a long training run.
+        log.warning("ego could not be inserted on the bridge after 20 attempts (dense traffic on the start lane); "
+                    "reloading the simulation")  # fmt: skip
         self._load()
         self._ego_serial = 0
         self._warmup(cfg.urban_warmup_seconds)
@@ -443,7 +446,9 @@ class LaneChangeEnv(gym.Env):
             self._ego_present = False
         info = self._info(event=event, mean_speed=mean_speed)
         info["caused"] = caused
-        return self._obs, float(reward), terminated, truncated, info
+        # a fresh array per step (the ego gone: a copy of the last one), so callers may keep or modify it
+        obs = self._obs.copy() if ego_gone else self._obs
+        return obs, float(reward), terminated, truncated, info
 
     # ------------------------------------------------------------------ state reading
     def _sim_step(self) -> None:
