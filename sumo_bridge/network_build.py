@@ -74,9 +74,13 @@ URBAN_TRAFFIC_SEED = 20210514
 class SumoNotFoundError(RuntimeError):
     """SUMO (the ``eclipse-sumo`` wheel or a SUMO_HOME install) or one of its binaries is missing."""
 
+    user_facing = True  # the `der` CLI prints the message, not a traceback
+
 
 class NetworkBuildError(RuntimeError):
     """netconvert (or the route generation) failed; the message carries netconvert's stderr."""
+
+    user_facing = True
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import sys
 import threading
 from types import ModuleType
 from typing import Any
@@ -25,7 +26,7 @@ from sumo_bridge.network_build import SumoNotFoundError, sumo_binary, sumo_home
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SimulationInUseError", "SumoSimulation", "libsumo_in_use"]
+__all__ = ["NoDisplayError", "SimulationInUseError", "SumoSimulation", "libsumo_in_use"]
 
 _LOCK = threading.Lock()
 _LIBSUMO_OWNER: str | None = None
@@ -34,6 +35,23 @@ _LABELS = itertools.count()
 
 class SimulationInUseError(RuntimeError):
     """A second libsumo simulation was requested while one is still open in this process."""
+
+
+class NoDisplayError(RuntimeError):
+    """``gui=True`` on a machine without a display (sumo-gui would exit and traci retry for a minute)."""
+
+    user_facing = True  # the `der` CLI prints the message, not a traceback
+
+
+def _check_display() -> None:
+    """Fail fast and clearly where sumo-gui cannot open a window (Linux/X11/Wayland only)."""
+    if not sys.platform.startswith("linux"):
+        return
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise NoDisplayError(
+            "gui = True needs a display, but neither DISPLAY nor WAYLAND_DISPLAY is set: run on a desktop, "
+            "over ssh -X, or under xvfb-run; or set gui = False (record a bag and replay it in Foxglove instead)"
+        )
 
 
 def libsumo_in_use() -> str | None:
@@ -85,9 +103,19 @@ class SumoSimulation:
         else:
             import traci
 
+            if gui:
+                _check_display()
             binary = sumo_binary("sumo-gui" if gui else "sumo")
             self._label = f"der_ros_{os.getpid()}_{next(_LABELS)}"
-            traci.start([binary, *args], label=self._label)
+            try:
+                traci.start([binary, *args], label=self._label)
+            except traci.exceptions.FatalTraCIError as exc:
+                if not gui:
+                    raise
+                raise NoDisplayError(
+                    f"sumo-gui did not start ({exc}); is the display DISPLAY={os.environ.get('DISPLAY', '')!r} "
+                    "reachable? Set gui = False to run without a window"
+                ) from exc
             self.api = traci.getConnection(self._label)
         self._closed = False
         log.debug("started SUMO (%s) for %s", backend, self.owner)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gc
 import math
+import sys
 from collections.abc import Iterator
 
 import gymnasium as gym
@@ -22,7 +23,7 @@ from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, encode_observation, field_index
 from sumo_bridge.policies import gap_acceptance_policy
 from sumo_bridge.scenario import ScenarioConfig
-from sumo_bridge.sim_backend import SimulationInUseError, libsumo_in_use
+from sumo_bridge.sim_backend import NoDisplayError, SimulationInUseError, libsumo_in_use
 
 GAP, PRESENT, LANE = field_index("gap"), field_index("present"), field_index("lane")
 ROW = {name: 1 + i for i, name in enumerate(SLOT_NAMES)}
@@ -372,3 +373,19 @@ def test_urban_reset_reloads_when_the_start_lane_stays_blocked(urban: LaneChange
     monkeypatch.setattr(urban, "_insert_urban_ego", lambda: False)
     with pytest.raises(RuntimeError, match="even after a reload"):
         urban.reset()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the display check is for X11/Wayland")
+def test_gui_without_a_display_fails_fast_and_says_why(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without the check, sumo-gui exits at once and traci retries for a minute, then reports a
+    connection failure that does not mention the display."""
+    import traci
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    started: list[list[str]] = []
+    monkeypatch.setattr(traci, "start", lambda cmd, **kw: started.append(cmd))
+    with pytest.raises(NoDisplayError, match="DISPLAY.*xvfb-run.*gui = False"):
+        LaneChangeEnv(ScenarioConfig.ring(gui=True))
+    assert started == []  # refused before sumo-gui was launched
+    assert libsumo_in_use() is None
