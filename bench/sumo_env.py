@@ -99,60 +99,62 @@ def _reset_ms(env: LaneChangeEnv, n: int) -> float:
     return 1000.0 * (time.perf_counter() - t0) / n
 
 
-def speed(rounds: int, chunk: int, traci_chunk: int) -> dict[str, float]:
-    """Interleaved rounds (raw, env, traci env, traci getters): the machine's load drifts, so each
-    round measures all four back to back and the medians of the per-round rates are reported.
-
-    The libsumo env and the traci env live side by side (traci runs SUMO in a subprocess; only a
-    second libsumo simulation is refused).
-    """
-    lib = LaneChangeEnv(ScenarioConfig.ring(**BENCH_CFG))
-    tra = LaneChangeEnv(ScenarioConfig.ring(backend="traci", **BENCH_CFG))
-    rng = np.random.default_rng(0)
-    raw, env_r, traci_r, getters_r = [], [], [], []
-    try:
-        for k in range(rounds):
-            raw.append(chunk / _chunk_raw(lib, chunk, seed=k))
-            env_r.append(chunk / _chunk_env(lib, chunk, rng, seed=k))
-            traci_r.append(traci_chunk / _chunk_env(tra, traci_chunk, rng, seed=k))
-            getters_r.append(traci_chunk / _chunk_getters(tra, traci_chunk, seed=k))
-        reset_ms = _reset_ms(lib, 20 * rounds)
-        traci_reset_ms = _reset_ms(tra, 2 * rounds)
-    finally:
-        lib.close()
-        tra.close()
-    # the default decision interval, in simulated steps per second (a decision every di steps)
-    lib = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=100_000))
-    tra = LaneChangeEnv(ScenarioConfig.ring(backend="traci", max_episode_steps=100_000))
+def _rounds(overrides: dict[str, int], rounds: int, chunk: int, traci_chunk: int, rng: np.random.Generator,
+            *, with_peers: bool) -> dict[str, list[float]]:  # fmt: skip
+    """Per-round rates in *simulated* steps per second of raw libsumo, the libsumo env and the
+    traci env on the ring with ``overrides`` (plus, ``with_peers``, the traci-getters loop and
+    the reset times). Interleaved: the machine's load drifts, so each round measures all of them
+    back to back. The two envs live side by side (traci runs SUMO in a subprocess; only a second
+    libsumo simulation is refused)."""
+    lib = LaneChangeEnv(ScenarioConfig.ring(**overrides))
+    tra = LaneChangeEnv(ScenarioConfig.ring(backend="traci", **overrides))
     di = lib.config.decision_interval
-    d_raw, d_env, d_traci = [], [], []
+    out: dict[str, list[float]] = {"raw": [], "env": [], "traci": [], "getters": []}
     try:
         for k in range(rounds):
-            d_raw.append(chunk / _chunk_raw(lib, chunk, seed=k))
-            d_env.append(chunk / _chunk_env(lib, chunk // di, rng, seed=k))
-            d_traci.append(traci_chunk / _chunk_env(tra, traci_chunk // di, rng, seed=k))
+            out["raw"].append(chunk / _chunk_raw(lib, chunk, seed=k))
+            out["env"].append(chunk // di * di / _chunk_env(lib, chunk // di, rng, seed=k))
+            out["traci"].append(traci_chunk // di * di / _chunk_env(tra, traci_chunk // di, rng, seed=k))
+            if with_peers:
+                out["getters"].append(traci_chunk / _chunk_getters(tra, traci_chunk, seed=k))
+        if with_peers:
+            out["reset_ms"] = [_reset_ms(lib, 20 * rounds)]
+            out["traci_reset_ms"] = [_reset_ms(tra, 2 * rounds)]
     finally:
         lib.close()
         tra.close()
+    return out
+
+
+def speed(rounds: int, chunk: int, traci_chunk: int) -> dict[str, float]:
+    """Medians of the per-round rates and ratios: one SUMO step per decision (``BENCH_CFG``),
+    then the scenario's default decision interval."""
+    rng = np.random.default_rng(0)
+    one = _rounds(BENCH_CFG, rounds, chunk, traci_chunk, rng, with_peers=True)
+    default = _rounds({"max_episode_steps": 100_000}, rounds, chunk, traci_chunk, rng, with_peers=False)
     med = statistics.median
+
+    def ratio(a: list[float], b: list[float]) -> float:
+        return med([x / y for x, y in zip(a, b)])
+
     return {
-        "decision_interval": di,
-        "default_raw": med(d_raw),
-        "default_env": med(d_env),
-        "default_traci": med(d_traci),
-        "default_env_over_raw": med([e / r for e, r in zip(d_env, d_raw)]),
-        "default_env_over_traci": med([e / t for e, t in zip(d_env, d_traci)]),
-        "default_raw_over_traci": med([r / t for r, t in zip(d_raw, d_traci)]),
-        "raw_over_traci": med([r / t for r, t in zip(raw, traci_r)]),
-        "raw": med(raw),
-        "env": med(env_r),
-        "traci": med(traci_r),
-        "getters": med(getters_r),
-        "env_over_raw": med([e / r for e, r in zip(env_r, raw)]),
-        "env_over_traci": med([e / t for e, t in zip(env_r, traci_r)]),
-        "env_over_getters": med([e / g for e, g in zip(env_r, getters_r)]),
-        "reset_ms": reset_ms,
-        "traci_reset_ms": traci_reset_ms,
+        "raw": med(one["raw"]),
+        "env": med(one["env"]),
+        "traci": med(one["traci"]),
+        "getters": med(one["getters"]),
+        "env_over_raw": ratio(one["env"], one["raw"]),
+        "env_over_traci": ratio(one["env"], one["traci"]),
+        "env_over_getters": ratio(one["env"], one["getters"]),
+        "raw_over_traci": ratio(one["raw"], one["traci"]),
+        "reset_ms": one["reset_ms"][0],
+        "traci_reset_ms": one["traci_reset_ms"][0],
+        "decision_interval": ScenarioConfig.ring().decision_interval,
+        "default_raw": med(default["raw"]),
+        "default_env": med(default["env"]),
+        "default_traci": med(default["traci"]),
+        "default_env_over_raw": ratio(default["env"], default["raw"]),
+        "default_env_over_traci": ratio(default["env"], default["traci"]),
+        "default_raw_over_traci": ratio(default["raw"], default["traci"]),
     }
 
 

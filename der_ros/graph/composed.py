@@ -10,12 +10,11 @@ the executor has drained what is still queued for it.
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 import time
 from typing import Any
 
-from der_ros.graph.orphans import stop_with_supervisor
+from der_ros.nodes.spin import install_stop_handlers
 
 __all__ = ["main"]
 
@@ -33,15 +32,7 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
     rclpy.init(args=list(sys.argv if argv is None else argv), signal_handler_options=SignalHandlerOptions.NO)
-    stop: dict[str, str] = {}
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop["reason"] = signal.Signals(signum).name
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    if not stop_with_supervisor():  # SIGTERM when `der graph` dies, even by SIGKILL
-        stop["reason"] = "supervisor gone"
+    stop = install_stop_handlers()
     nodes: list[Any] = []
     try:
         for cls in (RecorderNode, AgentNode, BridgeNode):  # recorder first: subscribed before data flows

@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 from der_ros.graph.orphans import stop_with_supervisor
 
-__all__ = ["BackgroundNode", "ManagedNode", "run_node"]
+__all__ = ["BackgroundNode", "ManagedNode", "install_stop_handlers", "run_node"]
 
 
 class ManagedNode(Protocol):
@@ -29,6 +29,22 @@ class ManagedNode(Protocol):
     # messages already queued, before ``on_shutdown``
 
     def on_shutdown(self, reason: str) -> None: ...
+
+
+def install_stop_handlers() -> dict[str, str]:
+    """SIGINT/SIGTERM handlers that only record the signal's name under ``"reason"`` in the
+    returned dict (the spin loop checks it), and the supervisor watch: SIGTERM when ``der graph``
+    dies, even by SIGKILL (:mod:`der_ros.graph.orphans`)."""
+    stop: dict[str, str] = {}
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop["reason"] = signal.Signals(signum).name
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    if not stop_with_supervisor():
+        stop["reason"] = "supervisor gone"
+    return stop
 
 
 def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll_s: float = 0.1) -> int:
@@ -45,15 +61,7 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
 
     args = list(sys.argv if argv is None else argv)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop: dict[str, str] = {}
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop["reason"] = signal.Signals(signum).name
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    if not stop_with_supervisor():  # SIGTERM when `der graph` dies, even by SIGKILL
-        stop["reason"] = "supervisor gone"
+    stop = install_stop_handlers()
     try:
         node = factory()
     except (ConfigError, ValueError) as exc:
