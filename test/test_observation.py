@@ -40,6 +40,22 @@ def _reference(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
     return np.array(out, dtype=np.float32)
 
 
+def _builtin_reference(rows: list[list[float]], cfg: ObservationConfig) -> np.ndarray:
+    """The encoder as first written, with ``min(max(x, lo), hi)``: the fast version must match it
+    byte for byte (signed zeros and NaN included), or old bags would encode differently."""
+    ego, lane = rows[0], rows[0][C["lane"]]
+    out = [min(max(ego[C["speed"]] / cfg.speed_scale, 0.0), 1.0), min(max(lane / (cfg.max_lanes - 1), 0.0), 1.0),
+           min(max(ego[C["target_lane"]] - lane, -1.0), 1.0), 1.0 if lane < ego[C["lane_count"]] - 1 else 0.0,
+           1.0 if lane > 0 else 0.0]  # fmt: skip
+    for row in rows[1:]:
+        if row[C["present"]] > 0.5:
+            out += (1.0, min(max(row[C["gap"]] / cfg.neighbour_range, -1.0), 1.0),
+                    min(max(row[C["rel_speed"]] / cfg.speed_scale, -1.0), 1.0))  # fmt: skip
+        else:
+            out += (0.0, 1.0, 0.0)
+    return np.array(out, dtype=np.float32)
+
+
 def _random_points(rng: np.random.Generator) -> np.ndarray:
     pts = empty_points()
     pts[0, C["speed"]] = rng.choice([rng.uniform(-5, 40), 0.0, -0.0, 20.0])
@@ -63,6 +79,7 @@ def test_list_route_equals_array_route_and_the_formula(cfg: ObservationConfig) -
         via_rows = encode_point_rows(pts.tolist(), cfg)
         assert via_array.dtype == np.float32 and via_array.shape == (observation_size(),)
         assert via_rows.tobytes() == via_array.tobytes()  # same arithmetic: bit for bit
+        assert via_rows.tobytes() == _builtin_reference(pts.tolist(), cfg).tobytes()
         assert np.array_equal(via_array, _reference(pts, cfg), equal_nan=True), pts
 
 
