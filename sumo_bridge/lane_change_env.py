@@ -480,15 +480,10 @@ class LaneChangeEnv(gym.Env):
             raise RuntimeError(f"ego vehicle {self.ego_id!r} is not in the simulation after reset")
         self._points_from_context(ctx)
 
-    def _longitudinal(self, ego_road: str, ego_pos: float, road: str, pos: float) -> float | None:
-        """Signed front-to-front distance along the road (positive: ``road/pos`` is ahead)."""
-        off = self._offsets
-        if ego_road in off and road in off:
-            d = (off[road] + pos) - (off[ego_road] + ego_pos)
-            if self._closed_corridor:
-                half = 0.5 * self._loop_length
-                d = (d + half) % self._loop_length - half
-            return d
+    def _distance_off_corridor(self, ego_road: str, ego_pos: float, road: str, pos: float) -> float | None:
+        """Signed front-to-front distance along the road (positive: ``road/pos`` is ahead) when one
+        of the two roads is off the corridor (SUMO's road distance; on the corridor the caller
+        uses the precomputed offsets); None if neither is reachable from the other."""
         dist = self.api.simulation.getDistanceRoad
         ahead = dist(ego_road, ego_pos, road, pos, True)
         if 0.0 <= ahead < _INVALID_DISTANCE:
@@ -544,7 +539,7 @@ class LaneChangeEnv(gym.Env):
                 if closed:
                     d = (d + half) % lap - half
             else:
-                d = self._longitudinal(ego_road, ego_pos, var[_V_ROAD], var[_V_LANEPOS])
+                d = self._distance_off_corridor(ego_road, ego_pos, var[_V_ROAD], var[_V_LANEPOS])
                 if d is None:
                     continue
             if d > 0.0:

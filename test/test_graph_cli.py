@@ -63,6 +63,13 @@ def counts(meta: dict) -> dict[str, int]:
     return {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
 
 
+def wait_for_states(run_dir: Path, proc: subprocess.Popen, more_than: int) -> None:
+    """Until the running graph's bag holds more than ``more_than`` states (the graph is up and stepping)."""
+    bag = run_dir / "bag"
+    wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > more_than, 120,
+               "states in the bag", proc)  # fmt: skip
+
+
 def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     steps = 60
@@ -143,9 +150,7 @@ def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Pa
     run_dir = tmp_path / "run"
     proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
     try:
-        bag = run_dir / "bag"
-        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 20, 120,
-                   "states in the bag", proc)
+        wait_for_states(run_dir, proc, more_than=20)
         proc.send_signal(sig)
         out, _ = proc.communicate(timeout=60)
     finally:
@@ -162,9 +167,7 @@ def test_a_dying_node_fails_the_run_and_is_named(ros_domain: int, tmp_path: Path
     run_dir = tmp_path / "run"
     proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
     try:
-        bag = run_dir / "bag"
-        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 5, 120,
-                   "states in the bag", proc)
+        wait_for_states(run_dir, proc, more_than=5)
         agent_pid = json.loads((run_dir / "pids.json").read_text())["agent_node"]
         os.kill(agent_pid, signal.SIGKILL)
         out, _ = proc.communicate(timeout=60)
@@ -196,9 +199,7 @@ def test_nodes_stop_when_the_runner_is_sigkilled(ros_domain: int, tmp_path: Path
     run_dir = tmp_path / "run"
     proc = der_graph(run_dir, ros_domain, "--steps", "100000", "--no-plots")
     try:
-        bag = run_dir / "bag"
-        wait_until(lambda: (bag / "metadata.yaml").exists() and counts(bag_meta(bag)).get("/state", 0) > 5, 120,
-                   "states in the bag", proc)
+        wait_for_states(run_dir, proc, more_than=5)
         pids = json.loads((run_dir / "pids.json").read_text())
         assert set(pids) == {"recorder_node", "agent_node", "bridge_node"}
         assert all(_running(pid) for pid in pids.values())
