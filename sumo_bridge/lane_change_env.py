@@ -32,19 +32,33 @@ Reward (section 5.1)
 --------------------
 Every step: ``log(max(v_mean, min_speed))`` where ``v_mean`` is the mean speed (m/s) of all
 vehicles in the simulation at the end of the step (the floor keeps a standstill finite; with
-the default 0.1 m/s the per-step reward is >= -2.3). Plus ``reward_success`` (+100) when the
-episode ends in success and ``reward_collision`` (-100) when the agent causes a collision.
+the default 0.1 m/s the per-step reward is >= -2.3). Plus ``reward_success`` (+100) once per
+episode, in the step the ego has reached ``target_lane``, and ``reward_collision`` (-100) when
+the agent causes a collision.
 
-Termination
------------
-* ``success`` (terminated): the ego has been on ``target_lane`` for ``settle_time`` seconds
-  without a collision.
+Episode structure (fixed horizon)
+---------------------------------
+An episode lasts ``max_episode_steps`` decisions (default 50 x 0.5 s) unless a collision ends it:
+
+* reaching the target lane (on it for ``settle_time`` seconds without a collision) pays
+  ``reward_success`` once; the episode **goes on**: the ego keeps driving, the speed reward keeps
+  flowing, further actions are still the agent's (a change back earns nothing more; a collision it
+  causes later still costs ``reward_collision``). So changing lanes safely *now* beats waiting by
+  ``reward_success * (1 - gamma^k)`` for any gamma < 1, whereas when success ended the episode it
+  also forfeited the speed reward of the remaining steps and never changing lane was optimal for
+  gamma above ~0.977 (``success_ends_episode=True`` restores that older structure).
+  The paper's ring total of 216.91 is about 100 + 50 x 2.33: what this horizon pays.
 * ``collision`` (terminated): SUMO reports a collision with the ego as collider or victim. The
   agent *caused* it (and gets ``reward_collision``) when it happens within ``collision_window``
   seconds after the ego's own commanded lane change; otherwise (rare: SUMO's car following is
   collision-free) the episode still terminates, without the penalty (``info["caused"]`` False).
-* ``time_limit`` (truncated): ``max_episode_steps`` steps passed, or the ego left the network
-  (urban: end of its route; the default time limit makes this impossible).
+* horizon reached (truncated, a time limit the learner bootstraps through): event ``success`` if
+  the target lane was reached during the episode, else ``time_limit``. The ego leaving the network
+  (urban: end of its route; the default horizon makes this impossible) ends the episode the same way.
+
+``info["event"]`` is the episode's outcome, set in its last step only (None before):
+``success``, ``collision`` or ``time_limit``. ``info["target_reached"]`` says whether the bonus
+was paid so far.
 
 Resets and determinism
 ----------------------
@@ -90,7 +104,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "EVENTS", "ACTION_MEANINGS"]
 
-#: Possible values of ``info["event"]``.
+#: Possible values of ``info["event"]`` (the outcome, in an episode's last step; None before).
 EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit")
 ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
 
@@ -173,6 +187,7 @@ class LaneChangeEnv(gym.Env):
         self._substep = 0
         self._last_change_substep: int | None = None
         self._on_target_since: int | None = None
+        self._target_reached = False
         self._lane_changes = 0
         self._done = False
 
@@ -283,7 +298,7 @@ class LaneChangeEnv(gym.Env):
                 vtype = "ego" if is_ego else ("slow" if slow[i] else "car")
                 api.vehicle.add(vid, f"loop_{edge}", vtype, depart="now", departLane=str(lane),
                                 departPos=f"{p:.3f}", departSpeed="0")  # fmt: skip
-        api.vehicle.setLaneChangeMode(self.ego_id, 0)
+        api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)
         self._warmup(cfg.warmup_seconds, min_steps=1)
         self._subscribe_ego()
 
@@ -331,7 +346,7 @@ class LaneChangeEnv(gym.Env):
             pos = self._urban_insert_pos()
             api.vehicle.add(self.ego_id, "ego_route", "ego", depart="now", departLane=str(cfg.ego_lane),
                             departPos=f"{pos:.3f}", departSpeed="max")  # fmt: skip
-            api.vehicle.setLaneChangeMode(self.ego_id, 0)
+            api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)
             for _ in range(3):
                 self._sim_step()
                 if self.ego_id in api.vehicle.getIDList():
@@ -430,17 +445,21 @@ class LaneChangeEnv(gym.Env):
             )
             if caused:
                 reward += cfg.reward_collision
+        elif self._target_reached:
+            pass
         elif not ego_gone and self._ego_lane == cfg.target:
             if self._on_target_since is None:
                 changed_now = self._last_change_substep is not None and self._last_change_substep >= self._substep - cfg.decision_interval
                 self._on_target_since = self._last_change_substep + 1 if changed_now else self._substep
             if (self._substep - self._on_target_since) * cfg.step_length >= cfg.settle_time - 1e-9:
-                terminated, event = True, "success"
+                self._target_reached = True  # the bonus is paid once per episode
                 reward += cfg.reward_success
+                if cfg.success_ends_episode:
+                    terminated, event = True, "success"
         else:
             self._on_target_since = None
         if not terminated and (ego_gone or self._episode_step >= cfg.max_episode_steps):
-            truncated, event = True, "time_limit"
+            truncated, event = True, ("success" if self._target_reached else "time_limit")
         self._done = terminated or truncated
         if ego_gone:
             self._ego_present = False
@@ -587,6 +606,7 @@ class LaneChangeEnv(gym.Env):
             "position": (x, y),
             "angle": angle,
             "lane_changes": self._lane_changes,
+            "target_reached": self._target_reached,
         }
 
     # ------------------------------------------------------------------ lifecycle

@@ -33,7 +33,19 @@ class ScenarioConfig:
     step_length: float = param(0.1, "SUMO simulation step in seconds", low=0.001, high=5.0)
     decision_interval: int = param(5, "simulation steps per environment step (one lane-change decision)", low=1, high=1000)
     max_episode_steps: int = param(
-        40, "environment steps before the episode is truncated (event 'time_limit')", low=1, high=1_000_000
+        50,
+        "environment steps of an episode (the fixed horizon): after this many the episode is truncated "
+        "(time limit; the learner bootstraps through it); event 'success' if the target lane was reached, "
+        "else 'time_limit'",
+        low=1,
+        high=1_000_000,
+    )
+    success_ends_episode: bool = param(
+        False,
+        "False (default): reaching the target lane pays reward_success once and the ego keeps driving to the "
+        "horizon, so the speed reward keeps flowing whatever it did and a safe change now is optimal for any "
+        "gamma. True: success terminates the episode (our earlier structure; it forfeits the speed reward of "
+        "the remaining steps, which makes never changing lane optimal for gamma > ~0.977, see the README)",
     )
     warmup_seconds: float = param(
         5.0, "ring: simulated seconds after placing the vehicles at standstill, before the first observation", low=0.0
@@ -90,6 +102,15 @@ class ScenarioConfig:
         "takes one simulation step, so 0.4 s with the default 5 x 0.1 s decision gives the +100 in the same "
         "env step as the lane change)",
         low=0.0,
+    )
+    ego_lane_change_mode: int = param(
+        0,
+        "SUMO laneChangeMode of the ego. 0 (the task): no lane change of its own, and a commanded change is "
+        "executed in the next simulation step whether safe or not, so the agent alone decides when. 1621 "
+        "(SUMO's default): SUMO's own model, which carries out a commanded change only when it finds it "
+        "safe, and may change lanes by itself (the 'sumo' baseline of the tables)",
+        low=0,
+        high=4095,
     )
     sumo_args: tuple[str, ...] = param((), "extra command-line arguments for sumo (e.g. ['--lateral-resolution', '0.8'])")
     observation: ObservationConfig = param(

@@ -122,6 +122,22 @@ def test_gradient_step_weights_loss_and_feeds_td_errors_back(loss: str) -> None:
     np.testing.assert_allclose(td, delta, rtol=1e-5, atol=1e-6)
 
 
+def test_reward_scale_scales_rewards_before_the_target_and_td_errors() -> None:
+    """reward_scale = 0.01 (the authors' r/100) on rewards r gives the TD errors that raw rewards r/100 give:
+    the replay keeps raw rewards, the learner scales them before eq. 1, so DER's weights e^|delta| see |delta| ~ 1."""
+    deltas = []
+    for scale, factor in ((0.01, 1.0), (1.0, 0.01)):
+        agent = small_agent(reward_scale=scale)
+        b = hand_batch()
+        spy = SpyReplay(b._replace(rewards=(b.rewards * 100.0 * factor).astype(np.float32)))
+        agent.replay = spy  # type: ignore[assignment]
+        agent.observe(np.zeros(3, np.float32), 0, 0.0, np.zeros(3, np.float32), False, False)
+        assert agent.learn()
+        deltas.append(spy.calls[0][1])
+    np.testing.assert_allclose(deltas[0], deltas[1], rtol=1e-6)
+    assert np.abs(deltas[0]).max() < 10.0  # r up to 300 raw, scaled to 3
+
+
 def test_zero_weights_leave_network_unchanged() -> None:
     agent = small_agent()
     agent.replay = SpyReplay(hand_batch([0.0, 0.0, 0.0, 0.0]))  # type: ignore[assignment]

@@ -183,14 +183,54 @@ def test_unsafe_lane_change_collides_with_penalty(ring: LaneChangeEnv) -> None:
         ring.step(0)
 
 
-def test_safe_lane_change_succeeds_with_bonus(ring: LaneChangeEnv) -> None:
+def test_safe_lane_change_pays_the_bonus_once_and_the_episode_goes_on(ring: LaneChangeEnv) -> None:
+    """The episode-structure rule (README "Design choices"): success pays +100 once, in the step of the
+    change, and the ego keeps driving to the horizon with the speed reward flowing; the outcome
+    'success' is reported at the horizon, as a truncation (the learner bootstraps through it)."""
     info = _find_moment(ring, want_unsafe=False, seeds=range(20, 40))
+    start_step = info["episode_step"]
     _obs, reward, terminated, truncated, info = ring.step(1)
-    # default settle_time 0.4 s = the 4 sim steps after the change: success in the same env step
+    # default settle_time 0.4 s = the 4 sim steps after the change: the bonus in the same env step
     total_bonus = reward - math.log(max(info["mean_speed"], ring.config.min_speed))
-    assert terminated and not truncated
-    assert info["event"] == "success" and info["lane"] == 1
     assert total_bonus == pytest.approx(100.0)
+    assert not terminated and not truncated and info["event"] is None
+    assert info["target_reached"] and info["lane"] == 1
+    steps = start_step + 1
+    while not (terminated or truncated):
+        # back to the start lane and again to the target: no second bonus
+        action = 2 if steps == start_step + 3 else (1 if steps == start_step + 6 else 0)
+        _obs, reward, terminated, truncated, info = ring.step(action)
+        steps += 1
+        if terminated:  # only a collision can end it early (rare with these manoeuvres)
+            assert info["event"] == "collision"
+            return
+        assert reward == pytest.approx(math.log(max(info["mean_speed"], ring.config.min_speed)))
+    assert truncated and steps == ring.config.max_episode_steps
+    assert info["event"] == "success" and info["target_reached"]
+
+
+def test_sumo_lane_change_mode_refuses_an_unsafe_command() -> None:
+    """ego_lane_change_mode = 1621 (SUMO's default, the 'sumo' baseline): the same unsafe command that
+    collides under mode 0 is held back by SUMO until it is safe."""
+    env = LaneChangeEnv(ScenarioConfig.ring(ego_lane_change_mode=1621))
+    try:
+        info = _find_moment(env, want_unsafe=True, seeds=range(10))
+        assert info["lane"] == 0
+        _obs, _reward, terminated, _truncated, info = env.step(1)
+        assert not terminated and info["lane"] == 0  # not carried out into an overlap
+    finally:
+        env.close()
+
+
+def test_success_ends_the_episode_in_the_older_structure() -> None:
+    env = LaneChangeEnv(ScenarioConfig.ring(success_ends_episode=True))
+    try:
+        info = _find_moment(env, want_unsafe=False, seeds=range(20, 40))
+        _obs, reward, terminated, truncated, info = env.step(1)
+        assert terminated and not truncated and info["event"] == "success"
+        assert reward - math.log(max(info["mean_speed"], 0.1)) == pytest.approx(100.0)
+    finally:
+        env.close()
 
 
 def test_keeping_the_lane_is_truncated_at_the_time_limit(ring: LaneChangeEnv) -> None:

@@ -22,6 +22,15 @@ class DQNConfig:
     lr: float = param(5e-4, "Adam learning rate (paper sections 4.1 and 5: 0.0005)", low=0.0, low_inclusive=False)
     gamma: float = param(0.98, "discount factor gamma of eq. 1 (paper: 0.98 CartPole, 0.99 Atari)", low=0.0, high=1.0)
     batch_size: int = param(128, "transitions per gradient step (paper: 128)", low=1)
+    reward_scale: float = param(
+        1.0,
+        "the learner multiplies every reward by this before the TD target (the replay keeps raw rewards). "
+        "It sets the scale of the TD errors, and so of DER's weights p = e^|delta| (eq. 3) and PER's "
+        "priorities: the authors' code stores r/100 (0.01), so that |delta| ~ 1 on SUMO's +-100 rewards "
+        "instead of a collision weighing e^100. The same for every replay method",
+        low=0.0,
+        low_inclusive=False,
+    )
     network: str = param(
         "auto",
         "Q-network: 'mlp' (vector observations), 'cnn' (the paper's Atari CNN on 4x84x84 uint8 frames) "

@@ -7,7 +7,7 @@ ROS agent node, which receives one message at a time, can drive it::
     agent.observe(obs, a, r, next_obs, terminated, truncated)
     metrics = agent.learn()                              # {} unless a gradient step was due
 
-Learning rule (eq. 1 and eq. 2 of the paper)::
+Learning rule (eq. 1 and eq. 2 of the paper), with r scaled by ``reward_scale``::
 
     y = r + gamma * (1 - terminated) * max_a' Q_target(s', a')
     delta = y - Q(s, a)
@@ -219,6 +219,8 @@ class DQNAgent:
         next_obs = self._tensor(batch.next_obs)
         actions = self._tensor(batch.actions.astype(np.int64, copy=False))
         rewards = self._tensor(batch.rewards.astype(np.float32, copy=False))
+        if self.cfg.reward_scale != 1.0:
+            rewards = rewards * self.cfg.reward_scale
         terminated = self._tensor(batch.terminated)
         weights = self._tensor(batch.weights.astype(np.float32, copy=False))
 

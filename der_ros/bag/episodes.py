@@ -11,8 +11,8 @@ Episodes are cut after a step whose reward message says terminated or truncated 
 resets and publishes the new episode's first state at the next stamp). The bridge's end event
 of an episode, when recorded, gives its outcome and its own statistics (steps, return,
 lane_changes, mean_speed); without it the statistics are computed from the steps and the
-outcome is ``terminated`` / ``time_limit`` from the flags, or ``incomplete`` for an episode
-the bag ends in.
+outcome is ``terminated`` / ``time_limit`` from the flags (the flags alone cannot tell a success
+at the horizon from a time limit), or ``incomplete`` for an episode the bag ends in.
 """
 
 from __future__ import annotations
