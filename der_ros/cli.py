@@ -21,6 +21,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "table1": ("der_ros.experiments.table1", "reproduce the paper's Table 1 (CartPole) over several seeds"),
     "table2": ("der_ros.experiments.table2", "run the paper's Table 2 (Atari) protocol"),
     "table3": ("der_ros.experiments.table3", "reproduce the paper's Table 3 (SUMO ring and urban) over several seeds"),
+    "baselines": ("der_ros.experiments.baselines", "evaluate the baselines (keep, immediate, gap acceptance, SUMO's model...) or tune gap acceptance"),
+    "sweep": ("der_ros.experiments.sweep", "run a grid of config overrides x seeds (tuning), ranked by greedy evaluation"),
     "graph": ("der_ros.graph.graph_cli", "run the ROS 2 graph: SUMO bridge, DER agent and MCAP recorder"),
     "replay": ("der_ros.bag.replay_cli", "inspect, plot, export, train from and play recorded MCAP bags"),
     "bench": ("der_ros.bench_cli", "run a benchmark script from bench/"),

@@ -111,6 +111,7 @@ def small_overrides(steps: int, **extra: object) -> dict[str, object]:
         "train.log_interval": 50,
         "train.tensorboard": False,
         "train.progress": False,
+        "train.final_eval_episodes": 0,
         **extra,
     }
 
@@ -146,7 +147,8 @@ def test_runner_resume_continues_exactly(tmp_path: Path) -> None:
 
 def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    extra = {"train.tensorboard": True, "train.eval_interval": 150, "train.eval_episodes": 2}
+    extra = {"train.tensorboard": True, "train.eval_interval": 150, "train.eval_episodes": 2,
+             "train.final_eval_episodes": 3}
     sets = [f"{k}={json.dumps(v)}" for k, v in small_overrides(300, **extra).items()]
     argv = ["train", "--config", str(CARTPOLE), "--replay", "der", "--lam", "0.9", "--seed", "3"]
     argv += ["--run-dir", str(run_dir), "--agent-lr", "0.001"]
@@ -166,13 +168,15 @@ def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
         "losses/q_values",
         "replay/h2_fraction",
         "replay/h2_weight_mean",
-        "charts/eval_return",
+        "eval/mean_return",
+        "eval/success",
         "charts/episodic_return",
         "charts/episodic_length",
     ):
         assert name in names
-    evals = [r for r in read_csv(run_dir / "metrics.csv") if r["name"] == "charts/eval_return"]
-    assert [int(r["step"]) for r in evals] == [150, 300] and all(float(r["value"]) >= 8 for r in evals)
+    evals = read_csv(run_dir / "evaluations.csv")
+    assert [(int(r["step"]), int(r["episodes"])) for r in evals] == [(0, 2), (150, 2), (300, 3)]
+    assert all(float(r["mean_return"]) >= 8 for r in evals)
     episodes = read_csv(run_dir / "episodes.csv")
     assert episodes and all(float(e["return"]) == float(e["length"]) for e in episodes)  # CartPole: +1 per step
     assert int(episodes[-1]["step"]) <= 300
@@ -291,6 +295,7 @@ def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
                 "agent.learning_starts": 50,
                 "train.eval_interval": 60,
                 "train.eval_episodes": 1,
+                "train.final_eval_episodes": 2,
             },
         ),
     )
@@ -298,8 +303,10 @@ def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
     assert summary.steps == 150
     names = {r["name"] for r in read_csv(tmp_path / "ring" / "metrics.csv")}
     assert {"losses/td_loss", "replay/h2_size"} <= names
-    # evaluated on the training env (one libsumo simulation per process) at episode boundaries
-    evals = [r for r in read_csv(tmp_path / "ring" / "metrics.csv") if r["name"] == "charts/eval_return"]
-    assert evals and all(int(r["step"]) >= 60 for r in evals)
+    # evaluated in a second process (one libsumo simulation per process) while training went on
+    evals = read_csv(tmp_path / "ring" / "evaluations.csv")
+    assert [(int(r["step"]), int(r["episodes"])) for r in evals] == [(0, 1), (60, 1), (120, 1), (150, 2)]
+    final = json.loads((tmp_path / "ring" / "evaluation.json").read_text())
+    assert final["step"] == 150 and {e["outcome"] for e in final["episodes"]} <= {"success", "collision", "time_limit"}
     agent = DQNAgent.load(tmp_path / "ring" / "checkpoint.pt")
     assert agent.n_actions == 3 and len(agent.obs_shape) == 1 and agent.replay_cfg.kind == "der"

@@ -86,11 +86,14 @@ def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureF
     argv += ["--methods", "dqn", "der0.9", "--jobs", "2", "--out", str(out), "--results", str(results)]
     argv += ["--set", "agent.learning_starts=100", "--set", "agent.hidden_sizes=[32]"]
     argv += ["--set", "train.tensorboard=false", "--set", "train.save_final_checkpoint=false"]
+    argv += ["--set", "train.eval_interval=100", "--set", "train.eval_episodes=4", "--set", "train.final_eval_episodes=6"]
     assert cli.main(argv) == 0
     md = (results / "table1.md").read_text()
-    assert "| DQN |" in md and "| λ = 0.9 |" in md
+    assert "| DQN (n=2) |" in md and "| λ = 0.9 (n=2) |" in md
     assert "373.80" in md and "229.30" in md and "285.49" in md  # the paper's numbers beside ours
-    assert "--seeds 2" in md and "torch:" in md and "gymnasium:" in md and "seeds: 0, 1" in md
+    assert "Greedy return (IQM)" in md and "*baseline:* random" in md and "*baseline:* scripted" in md
+    assert "P(X > Y) on max score" in md and "too few for a verdict" in md  # 2 seeds: no verdict
+    assert "--seeds 2" in md and "torch:" in md and "rliable:" in md and "seeds: 1000, 1001" in md
     for png in ("table1_curves.png", "table1_td.png"):
         assert (results / png).stat().st_size > 10_000
     summaries = sorted(out.glob("*/seed*/summary.json"))
@@ -98,9 +101,19 @@ def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureF
     for p in summaries:
         s = json.loads(p.read_text())
         assert s["steps"] == 300 and s["episodes"] > 0
-    # the per-seed rows carry each run's own scores
-    dqn0 = json.loads((out / "dqn" / "seed0" / "summary.json").read_text())
-    assert f"| DQN | 0 | {dqn0['episodes']} | {dqn0['max_ma20_return']:.2f} | {dqn0['mean_return']:.2f} |" in md
+    # the per-seed rows and the JSON twin carry each run's own scores
+    dqn0 = json.loads((out / "dqn" / "seed1000" / "summary.json").read_text())
+    final = json.loads((out / "dqn" / "seed1000" / "evaluation.json").read_text())
+    assert len(final["episodes"]) == 6 and min(final["seeds"]) >= 1_000_000_000
+    row = f"| DQN | 1000 | {dqn0['episodes']} | {dqn0['max_ma20_return']:.2f} | {dqn0['mean_return']:.2f} "
+    assert row + f"| {final['summary']['mean_return']:.2f} |" in md
+    table = json.loads((results / "table1.json").read_text())["cartpole"]
+    assert table["dqn"]["seeds"] == [1000, 1001]
+    assert table["dqn"]["max_ma20"][0] == pytest.approx(dqn0["max_ma20_return"])
+    assert table["dqn"]["avg_score"][0] == pytest.approx(dqn0["mean_return"])
+    assert table["dqn"]["eval_return"][0] == pytest.approx(final["summary"]["mean_return"])
+    assert set(table) == {"dqn", "der0.9", "random", "constant", "scripted"} and "seeds" not in table["scripted"]
+    assert table["scripted"]["eval_return"] > table["random"]["eval_return"]
     # rerun: every run is finished, nothing is retrained
     mtimes = [p.stat().st_mtime_ns for p in summaries]
     (results / "table1.md").unlink()
@@ -110,19 +123,44 @@ def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureF
     capsys.readouterr()
 
 
+def test_table3_tiny_end_to_end_writes_the_evaluation_columns(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out, results = tmp_path / "runs", tmp_path / "results"
+    argv = ["table3", "--networks", "ring", "--methods", "dqn", "der0.9", "--seeds", "1", "--steps", "120"]
+    argv += ["--jobs", "2", "--out", str(out), "--results", str(results)]
+    argv += ["--set", "agent.learning_starts=60", "--set", "agent.hidden_sizes=[32]", "--set", "train.tensorboard=false"]
+    argv += ["--set", "train.eval_interval=60", "--set", "train.eval_episodes=2", "--set", "train.final_eval_episodes=3"]
+    assert cli.main(argv) == 0
+    md = (results / "table3.md").read_text()
+    for col in ("| Success | Caused collision | Time limit | Return |", "Total reward (training, paper's metric)",
+                "*baseline:* never change (keep)", "*baseline:* gap acceptance (tuned)",
+                "*baseline:* SUMO's own model", "P(X > Y) on success", "216.91"):
+        assert col in md
+    table = json.loads((results / "table3.json").read_text())["ring"]
+    assert set(table) == {"dqn", "der0.9", "keep", "immediate", "random", "gap_acceptance", "sumo"}
+    for key in ("seeds", "eval_success", "eval_collision", "eval_return", "train_total_reward"):
+        assert len(table["dqn"][key]) == 1
+    final = json.loads((out / "ring" / "dqn" / "seed1000" / "evaluation.json").read_text())
+    assert table["dqn"]["eval_return"][0] == pytest.approx(final["summary"]["mean_return"])
+    assert table["keep"]["eval_success"] == 0.0 and table["keep"]["eval_time_limit"] == 1.0  # never changes lane
+    assert 0.0 <= table["gap_acceptance"]["eval_collision"] <= 1.0 and "seeds" not in table["keep"]
+    assert (results / "table3_ring_curves.png").stat().st_size > 10_000
+    capsys.readouterr()
+
+
 def test_table2_short_atari_run(tmp_path: Path) -> None:
     out, results = tmp_path / "runs", tmp_path / "results"
     argv = ["table2", "--config", str(REPO / "config" / "atari.yaml"), "--games", "Breakout", "--methods", "der0.1"]
     argv += ["--seeds", "1", "--steps", "300", "--jobs", "1", "--out", str(out), "--results", str(results)]
     argv += ["--set", "replay.capacity=500", "--set", "replay.h2_capacity=64", "--set", "agent.batch_size=16"]
     argv += ["--set", "agent.learning_starts=100", "--set", "train.tensorboard=false"]
+    argv += ["--set", "train.final_eval_episodes=1", "--set", "env.max_episode_steps=400"]
     assert cli.main(argv) == 0
     md = (results / "table2.md").read_text()
     assert "| Breakout |" in md and "58.28" in md  # paper's lambda = 0.1 Breakout score beside ours
-    summary = json.loads((out / "breakout" / "der0.1" / "seed0" / "summary.json").read_text())
+    summary = json.loads((out / "breakout" / "der0.1" / "seed1000" / "summary.json").read_text())
     assert summary["steps"] == 300
     assert (results / "table2_curves.png").is_file()
-    cfg = (out / "breakout" / "der0.1" / "seed0" / "config.yaml").read_text()
+    cfg = (out / "breakout" / "der0.1" / "seed1000" / "config.yaml").read_text()
     assert "ALE/Breakout-v5" in cfg
 
 

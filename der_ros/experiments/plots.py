@@ -17,10 +17,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from der_ros.experiments.aggregate import evaluation_curve, iqm_band  # noqa: E402
 from der_ros.experiments.stats import bootstrap_band, curve_on_grid  # noqa: E402
 from der_ros.experiments.suite import RunResult  # noqa: E402
 
-__all__ = ["plot_learning_curves", "plot_td_traces", "metric_on_grid", "save_figure"]
+__all__ = ["plot_learning_curves", "plot_td_traces", "plot_eval_curves", "metric_on_grid", "save_figure"]
 
 
 def save_figure(fig: plt.Figure, path: str | Path, dpi: int = 120) -> Path:
@@ -133,6 +134,60 @@ def plot_td_traces(
         ax_w.legend(fontsize=8)
     else:
         ax_w.text(0.5, 0.5, "no DER runs", ha="center", va="center", transform=ax_w.transAxes)
+    if title:
+        fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+#: evaluation metric -> axis label
+EVAL_METRIC_LABELS = {
+    "success": "greedy success rate",
+    "collision": "greedy caused-collision rate",
+    "time_limit": "greedy time-limit rate",
+    "mean_return": "greedy mean return",
+}
+
+
+def plot_eval_curves(
+    results: Mapping[str, Sequence[RunResult]],
+    labels: Mapping[str, str],
+    path: str | Path,
+    metrics: Sequence[str] = ("success", "collision"),
+    baselines: Mapping[str, Mapping[str, float]] | None = None,
+    title: str = "",
+    training_window: int | None = 20,
+) -> Path:
+    """Evaluation curves: per metric, the IQM over seeds of the periodic greedy evaluations against
+    training steps with a 95% bootstrap band; baselines as dashed lines; optionally a last panel with
+    the training-episode curves of :func:`plot_learning_curves` (the paper's figures)."""
+    panels = len(metrics) + (1 if training_window else 0)
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.2), squeeze=False)
+    for k, metric in enumerate(metrics):
+        ax = axes[0][k]
+        for i, (name, runs) in enumerate(results.items()):
+            curves = [evaluation_curve(r.spec.run_dir) for r in runs]
+            curves = [c for c in curves if c["step"].size]
+            if not curves:
+                continue
+            steps = np.unique(np.concatenate([c["step"] for c in curves]))
+            table = np.full((len(curves), steps.size), np.nan)
+            for row, c in enumerate(curves):
+                table[row, np.searchsorted(steps, c["step"])] = c[metric]
+            point, lo, hi = iqm_band(table)
+            color = f"C{i % 10}"
+            ax.plot(steps, point, marker=".", color=color, label=f"{labels.get(name, name)} (n={len(curves)})")
+            ax.fill_between(steps, lo, hi, color=color, alpha=0.2, linewidth=0)
+        for j, (bname, values) in enumerate((baselines or {}).items()):
+            if metric in values and np.isfinite(values[metric]):
+                ax.axhline(values[metric], color="0.3", linestyle=("--", ":", "-.", (0, (5, 1)), (0, (1, 3)))[j % 5],
+                           linewidth=1, label=f"baseline: {bname}")  # fmt: skip
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(EVAL_METRIC_LABELS.get(metric, metric) + " (IQM, 95% CI)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    if training_window:
+        plot_learning_curves(results, labels, None, window=training_window, ax=axes[0][-1],
+                             title="training episodes (the paper's figures)")  # fmt: skip
     if title:
         fig.suptitle(title)
     return save_figure(fig, path)

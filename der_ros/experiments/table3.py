@@ -1,38 +1,55 @@
-"""``der table3``: reproduce Table 3 of the paper (SUMO lane change: ring and urban network).
+"""``der table3``: Table 3 of the paper (SUMO lane change: ring and urban network), evaluated greedily.
 
-Protocol (paper section 5.1): DQN, PER and DER (lambda = 0.1 / 0.5 / 0.9) trained for 15,000
-environment steps on each network; only the replay differs between methods. The environments are
-``der_ros/LaneChangeRing-v0`` and ``der_ros/LaneChangeUrban-v0`` (``config/ring.yaml``,
-``config/urban.yaml``); the urban network is a synthetic stand-in for the paper's Yeongdong
-Bridge OpenStreetMap extract (see ``sumo_bridge/network_build.py``).
+Protocol (paper section 5.1, and the evaluation protocol of the README):
 
-Per run:
+* DQN, PER and DER (lambda = 0.1 / 0.5 / 0.9) trained for 15,000 environment steps on each
+  network; only the replay differs between methods (``config/ring.yaml``, ``config/urban.yaml``).
+* **Headline: the greedy policy** (epsilon = 0) at the end of training, on 300 held-out evaluation
+  episodes per training seed (seeds never used in training, the same for every method): success,
+  caused collision, time limit, mean return. Periodic evaluations (every 1,000 steps) give the
+  curves of the figures.
+* **Baselines** on the same evaluation episodes: never change, immediate change, random, gap
+  acceptance (tuned on tuning seeds) and SUMO's own lane-change model
+  (:mod:`der_ros.experiments.baselines`).
+* **Aggregates over >= 10 training seeds** (rliable): IQM with stratified-bootstrap 95% CIs, the
+  mean with its CI, and the probability of improvement of each DER lambda over DQN and over PER;
+  "better" only when the CI of P(X > Y) excludes 0.5.
+* The paper's own "total reward" stays, labelled as what it is: the mean return over all
+  *training* episodes of a run (exploration included).
 
-* total reward per episode = mean return over all training episodes (the paper reports one
-  "total reward" per model; we read it as the average episode return of the run),
-* the same over the last 100 training episodes,
-* success and collision rates over all training episodes (from the env's ``info["event"]``,
-  logged by the runner as ``charts/episode_success`` / ``charts/episode_collision``).
-
-Per method: mean over seeds with a 95% bootstrap CI (10,000 resamples, fixed seed). Writes
-``<results>/table3.md`` and Fig. 5-style learning curves ``table3_ring_curves.png`` and
-``table3_urban_curves.png``; run directories go to ``--out/<network>/<method>/seed<k>``
-(finished runs are reused, interrupted ones resume).
+Writes ``<results>/table3.md``, ``table3.json`` (every per-seed number) and
+``table3_<network>_curves.png``; run directories go to ``--out/<network>/<method>/seed<k>``
+(finished runs are reused, interrupted ones resume), baselines to ``--out/<network>/baselines``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-import numpy as np
-
-from der_ros.experiments.plots import plot_learning_curves
+from der_ros.experiments.aggregate import (
+    Interval,
+    final_evaluation,
+    iqm_interval,
+    mean_interval,
+    probability_of_improvement,
+    significance_sentence,
+)
+from der_ros.experiments.baselines import (
+    DEFAULT_PARAMS_FILE,
+    BaselineJob,
+    baseline_names,
+    load_gap_params,
+    run_baselines,
+)
+from der_ros.experiments.plots import plot_eval_curves
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
-from der_ros.experiments.stats import CI, average_score, bootstrap_ci, mean_of_last
+from der_ros.experiments.stats import average_score
 from der_ros.experiments.suite import (
     RunResult,
     RunSpec,
@@ -41,13 +58,16 @@ from der_ros.experiments.suite import (
     load_result,
     methods_by_name,
     plan_runs,
+    report_interrupted,
     run_specs,
     suite_command,
     suite_overrides,
     suite_seeds,
 )
+from der_ros.train.config import load_experiment_config
+from der_ros.train.evaluation import EVAL_SEED_BASE, EvalResult
 
-__all__ = ["PAPER_TABLE3", "NETWORKS", "add_arguments", "run", "score_run", "write_table3"]
+__all__ = ["PAPER_TABLE3", "NETWORKS", "BASELINE_LABELS", "add_arguments", "run", "score_run", "write_table3"]
 
 log = logging.getLogger(__name__)
 
@@ -57,45 +77,55 @@ PAPER_TABLE3: dict[str, dict[str, float]] = {
     "urban": {"dqn": 60.64, "der0.1": 75.84, "der0.5": 70.25, "der0.9": 81.77, "per": 79.50},
 }
 NETWORKS: dict[str, str] = {"ring": "Ring network", "urban": "Yeongdong Bridge (synthetic stand-in)"}
-EVENT_METRICS = ("charts/episode_success", "charts/episode_collision")
+BASELINE_LABELS: dict[str, str] = {
+    "keep": "never change (keep)",
+    "immediate": "immediate change",
+    "random": "random",
+    "gap_acceptance": "gap acceptance (tuned)",
+    "sumo": "SUMO's own model (standing request)",
+}
+#: the comparisons of the significance section: (X, Y) -> P(X > Y)
+COMPARISONS = [(f"der{lam}", ref) for lam in ("0.1", "0.5", "0.9") for ref in ("dqn", "per")]
+SCORE_KEYS = ("eval_success", "eval_collision", "eval_time_limit", "eval_return", "train_total_reward")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_suite_arguments(parser, default_config="config/ring.yaml", default_out="runs/table3", default_seeds=5)
+    add_suite_arguments(parser, default_config="config/ring.yaml", default_out="runs/table3", default_seeds=10)
     parser.description = (parser.description or "") + " (--config is the ring network's training YAML)"
     parser.add_argument("--urban-config", dest="urban_config", default="config/urban.yaml",
                         help="training YAML of the urban network (default config/urban.yaml)")  # fmt: skip
     parser.add_argument("--networks", nargs="+", choices=tuple(NETWORKS), default=list(NETWORKS),
                         help="which networks to run (default: both)")  # fmt: skip
-
-
-def _event_rate(run: RunResult, name: str) -> float:
-    if name not in run.metrics or run.metrics[name][1].size == 0:
-        return math.nan
-    return float(np.mean(run.metrics[name][1]))
+    parser.add_argument("--baseline-params", dest="baseline_params", default=None,
+                        help="tuned gap-acceptance thresholds (default config/baselines.yaml)")  # fmt: skip
+    parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
 
 
 def score_run(run: RunResult) -> dict[str, float]:
-    """Scores of one run (see the module docstring)."""
+    """Per-run scores: the final greedy evaluation, and the paper's total reward over training episodes."""
+    ev = final_evaluation(run.spec.run_dir)
+    nan = math.nan
     return {
-        "total_reward": average_score(run.returns),
-        "last100": mean_of_last(run.returns, 100),
-        "success": _event_rate(run, "charts/episode_success"),
-        "collision": _event_rate(run, "charts/episode_collision"),
-        "episodes": float(len(run.returns)),
+        "eval_success": ev.success_rate if ev else nan,
+        "eval_collision": ev.collision_rate if ev else nan,
+        "eval_time_limit": ev.time_limit_rate if ev else nan,
+        "eval_return": ev.mean_return if ev else nan,
+        "eval_episodes": float(ev.n) if ev else 0.0,
+        "train_total_reward": average_score(run.returns),
+        "train_episodes": float(len(run.returns)),
     }
 
 
-def _ci(values: Sequence[float]) -> CI:
-    clean = [v for v in values if not math.isnan(v)]
-    return bootstrap_ci(clean) if clean else CI(math.nan, math.nan, math.nan, 0)
+def _baseline_scores(res: EvalResult) -> dict[str, float]:
+    return {"eval_success": res.success_rate, "eval_collision": res.collision_rate,
+            "eval_time_limit": res.time_limit_rate, "eval_return": res.mean_return, "episodes": float(res.n)}  # fmt: skip
 
 
 def _versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
     out = {}
-    for pkg in ("eclipse-sumo", "libsumo"):
+    for pkg in ("eclipse-sumo", "libsumo", "rliable"):
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
@@ -103,55 +133,109 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def _cell(x: Interval, digits: int = 3) -> str:
+    return x.format(digits)
+
+
 def write_table3(
     results: dict[str, dict[str, list[RunResult]]],
     labels: dict[str, str],
+    baselines: dict[str, dict[str, EvalResult]],
     path: Path,
     command: str,
     seeds: Sequence[int],
     steps: dict[str, int],
     wall_s: float,
-) -> Path:
-    """Markdown: per network, ours (mean ± 95% CI) beside the paper's total reward."""
+) -> tuple[Path, Path]:
+    """``table3.md`` (see the module docstring) and ``table3.json`` (every per-seed number)."""
+    scores = {net: {m: [score_run(r) for r in runs] for m, runs in by_m.items()} for net, by_m in results.items()}
+    n_eval = max((int(s["eval_episodes"]) for by_m in scores.values() for ss in by_m.values() for s in ss), default=0)
     lines = [
-        "# Table 3 — SUMO lane change (reproduction)",
+        "# Table 3 — SUMO lane change (reproduction, greedy evaluation)",
         "",
-        "Total reward per episode = mean training-episode return of a run (reward, paper section 5.1:",
-        "log of the mean speed of all vehicles per step, +100 for reaching the target lane, -100 for",
-        "causing a collision). Ours: mean over seeds ± half-width of the 95% percentile-bootstrap CI",
-        "of the mean (10,000 resamples, seed 0). Success / collision: fraction of training episodes.",
-        "The urban network is a synthetic stand-in for the paper's Yeongdong Bridge OSM extract,",
-        "so its numbers are not directly comparable with the paper's.",
+        f"**Headline: the greedy policy** (ε = 0) after training, on {n_eval} held-out evaluation episodes per",
+        f"training seed (evaluation seeds {EVAL_SEED_BASE}+k: never used in training, the same for every method and",
+        "baseline). Learned methods: **IQM over training seeds [95% stratified-bootstrap CI]** (rliable);",
+        "baselines: the same episodes, no training. *Caused collision* = a collision within 3 s of the agent's",
+        "own lane change. *Return* = the paper's reward over the 50-step episode (log mean speed per step, +100",
+        "once for reaching the target lane, −100 for a caused collision). The last columns are the paper's own",
+        "metric, *total reward* = mean return over all **training** episodes (ε-greedy exploration included;",
+        "mean over seeds ± 95% CI), beside the paper's value.",
         "",
     ]
-    per_seed = [
-        "| Network | Method | Seed | Episodes | Total reward | Last 100 | Success | Collision |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for net, by_method in results.items():
+    per_seed = ["| Network | Method | Seed | Eval success | Eval caused collision | Eval time limit | Eval return "
+                "| Train total reward | Train episodes |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    payload: dict[str, Any] = {}
+    for net, by_method in scores.items():
+        payload[net] = {}
         lines += [
             f"## {NETWORKS[net]}",
             "",
-            "| Method | Total reward (ours) | Total reward (paper) | Last 100 episodes | Success rate | Collision rate |",
-            "|---|---|---|---|---|---|",
+            "| Method | Success | Caused collision | Time limit | Return | Total reward (training, paper's metric) | Total reward (paper) |",
+            "|---|---|---|---|---|---|---|",
         ]
-        for name, runs in by_method.items():
-            scores = [score_run(r) for r in runs]
-            cis = {k: _ci([s[k] for s in scores]) for k in ("total_reward", "last100", "success", "collision")}
+        for name, per in by_method.items():
+            run_seeds = [r.spec.seed for r in results[net][name]]
+            col = {k: [s[k] for s in per] for k in SCORE_KEYS}
+            payload[net][name] = {"seeds": run_seeds, **{k: col[k] for k in SCORE_KEYS}}
             paper = PAPER_TABLE3[net].get(name, math.nan)
             lines.append(
-                f"| {labels[name]} | {cis['total_reward'].format()} | {paper:.2f} | {cis['last100'].format()} "
-                f"| {cis['success'].format(3)} | {cis['collision'].format(3)} |"
+                f"| {labels[name]} (n={len(per)}) | {_cell(iqm_interval(col['eval_success']))} "
+                f"| {_cell(iqm_interval(col['eval_collision']))} | {_cell(iqm_interval(col['eval_time_limit']))} "
+                f"| {_cell(iqm_interval(col['eval_return']), 1)} | {_mean_pm(col['train_total_reward'])} | {paper:.2f} |"
             )
-            for r, s in zip(runs, scores):
+            for r, s in zip(results[net][name], per):
                 per_seed.append(
-                    f"| {net} | {labels[name]} | {r.spec.seed} | {int(s['episodes'])} | {s['total_reward']:.2f} "
-                    f"| {s['last100']:.2f} | {s['success']:.3f} | {s['collision']:.3f} |"
+                    f"| {net} | {labels[name]} | {r.spec.seed} | {s['eval_success']:.3f} | {s['eval_collision']:.3f} "
+                    f"| {s['eval_time_limit']:.3f} | {s['eval_return']:.2f} | {s['train_total_reward']:.2f} "
+                    f"| {int(s['train_episodes'])} |"
                 )
-        lines += ["", f"![{net} learning curves](table3_{net}_curves.png)", ""]
+        for bname, res in baselines.get(net, {}).items():
+            b = _baseline_scores(res)
+            payload[net][bname] = b
+            lines.append(f"| *baseline:* {BASELINE_LABELS.get(bname, bname)} | {b['eval_success']:.3f} "
+                         f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} | — | — |")  # fmt: skip
+        lines += ["", "Mean over seeds [95% CI] of the same evaluation (the IQM above is the headline):", "",
+                  "| Method | Success | Caused collision | Return |", "|---|---|---|---|"]  # fmt: skip
+        for name in by_method:
+            col = payload[net][name]
+            lines.append(f"| {labels[name]} | {_cell(mean_interval(col['eval_success']))} "
+                         f"| {_cell(mean_interval(col['eval_collision']))} | {_cell(mean_interval(col['eval_return']), 1)} |")  # fmt: skip
+        lines += _significance(net, payload[net], labels)
+        lines += ["", f"![{net}: evaluation and training curves](table3_{net}_curves.png)", ""]
     info = environment_info() | _versions()
     lines += run_details(command, seeds, steps, wall_s, info, per_seed, seeds_per="method and network")
-    return write_markdown(path, lines)
+    md = write_markdown(path, lines)
+    js = path.with_suffix(".json")
+    tmp = js.with_name(f".{js.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=1, allow_nan=True))
+    tmp.replace(js)
+    return md, js
+
+
+def _mean_pm(values: Sequence[float]) -> str:
+    ci = mean_interval(values)
+    if math.isnan(ci.value):
+        return "n/a"
+    return f"{ci.value:.2f} ± {max(ci.high - ci.value, ci.value - ci.low):.2f}"
+
+
+def _significance(net: str, payload: dict[str, Any], labels: dict[str, str]) -> list[str]:
+    """The probability-of-improvement table and the sentences that follow from it."""
+    pairs = [(x, y) for x, y in COMPARISONS if x in payload and y in payload and "seeds" in payload[x]]
+    if not pairs:
+        return []
+    lines = ["", "Is DER better? Probability of improvement P(X > Y) over training seeds [95% CI] (rliable):", "",
+             "| X vs Y | P(X > Y) on success | P(X > Y) on return |", "|---|---|---|"]  # fmt: skip
+    sentences = []
+    for x, y in pairs:
+        p_s = probability_of_improvement(payload[x]["eval_success"], payload[y]["eval_success"])
+        p_r = probability_of_improvement(payload[x]["eval_return"], payload[y]["eval_return"])
+        lines.append(f"| {labels[x]} vs {labels[y]} | {p_s.format(2)} | {p_r.format(2)} |")
+        n = min(len(payload[x]["seeds"]), len(payload[y]["seeds"]))
+        sentences.append(significance_sentence(labels[x], labels[y], p_r, "greedy return", n))
+    lines += ["", *[f"- {s}" for s in sentences]]
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
@@ -162,22 +246,40 @@ def run(args: argparse.Namespace) -> int:
     specs: list[RunSpec] = []
     for net in args.networks:
         specs += plan_runs(configs[net], methods, seeds, args.out, overrides, group=net)
-    run_specs(specs, args.jobs)
+    summaries = run_specs(specs, args.jobs)
+    if report_interrupted("table3", summaries):
+        return 130
     results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in methods} for net in args.networks}
     for spec in specs:
-        results[spec.group][spec.method.name].append(load_result(spec, EVENT_METRICS))
+        results[spec.group][spec.method.name].append(load_result(spec, ()))
+    baselines: dict[str, dict[str, EvalResult]] = {}
+    if args.baselines:
+        jobs: list[tuple[str, BaselineJob]] = []
+        for net in args.networks:
+            cfg = load_experiment_config(configs[net], overrides or None)
+            episodes = cfg.train.final_eval_episodes or cfg.train.eval_episodes
+            gap = load_gap_params(net, args.baseline_params or DEFAULT_PARAMS_FILE)
+            for name in baseline_names(cfg.env):
+                jobs.append((net, BaselineJob(cfg.env, name, episodes, cfg.train.eval_episodes_per_seed,
+                                              cfg.train.eval_seed_base, gap if name == "gap_acceptance" else None,
+                                              str(Path(args.out) / net / "baselines" / name))))  # fmt: skip
+        evaluated = run_baselines([j for _, j in jobs], args.jobs)
+        for net, job in jobs:
+            baselines.setdefault(net, {})[job.name] = evaluated[job.out_dir]
     labels = {m.name: m.label for m in methods}
-    steps = {
-        net: max(int(r.summary["steps"]) for runs in by_m.values() for r in runs) for net, by_m in results.items()
-    }
+    steps = {net: max(int(r.summary["steps"]) for runs in by_m.values() for r in runs) for net, by_m in results.items()}
     out = Path(args.results)
     extra = ["--urban-config", str(args.urban_config), "--networks", *args.networks]
-    md = write_table3(results, labels, out / "table3.md", suite_command("table3", args, extra), seeds, steps, total_training_time(results))
+    md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
+                          steps, total_training_time(results))  # fmt: skip
     figures = []
     for net, by_method in results.items():
         fig = out / f"table3_{net}_curves.png"
-        plot_learning_curves(by_method, labels, fig, window=20, title=f"{NETWORKS[net]} (Fig. 5 style)")
+        marks = {BASELINE_LABELS[b]: {"success": r.success_rate, "collision": r.collision_rate}
+                 for b, r in baselines.get(net, {}).items() if b in ("gap_acceptance", "sumo")}  # fmt: skip
+        plot_eval_curves(by_method, labels, fig, metrics=("success", "collision"), baselines=marks,
+                         title=f"{NETWORKS[net]}: greedy evaluation (IQM over seeds) and training returns")  # fmt: skip
         figures.append(str(fig))
     print(md.read_text())
-    print(f"wrote {md}, {', '.join(figures)}")
+    print(f"wrote {md}, {js}, {', '.join(figures)}")
     return 0

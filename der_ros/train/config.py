@@ -79,7 +79,13 @@ class TrainConfig:
     """One training run: how long, which seed, where to write, how often to log and checkpoint."""
 
     total_steps: int = param(10_000, "environment steps to train for (paper: 10,000 CartPole, >= 200,000 Atari)", low=1)
-    seed: int = param(0, "seed of the environment, the exploration and the replay sampling", low=0)
+    seed: int = param(
+        0,
+        "seed of the environment, the exploration and the replay sampling (below 1000000000: higher seeds are "
+        "evaluation seeds)",
+        low=0,
+        high=999_999_999,
+    )
     device: str = param("auto", "torch device: auto (cuda when present), cpu or cuda", choices=("auto", "cpu", "cuda"))
     threads: int = param(1, "torch intra-op threads (1 is fastest for small networks and fair on shared cores)", low=1)
     run_dir: str | None = param(None, "output folder; None = runs/<env>-<replay>-<seed>-<timestamp> under runs_root")
@@ -92,11 +98,33 @@ class TrainConfig:
     )
     eval_interval: int = param(
         0,
-        "greedy evaluation every this many env steps (0 = off); SUMO envs (one simulation per process) are "
-        "evaluated on the training env at the next episode end",
+        "greedy evaluation (epsilon = 0, on held-out evaluation seeds) at step 0 and every this many env "
+        "steps (0 = only the final one); results in evaluations.csv and the eval/* metrics",
         low=0,
     )
-    eval_episodes: int = param(5, "episodes per evaluation", low=1)
+    eval_episodes: int = param(100, "episodes per periodic evaluation", low=1)
+    final_eval_episodes: int = param(
+        300, "episodes of the evaluation at the end of training (evaluation.json; 0 = none)", low=0
+    )
+    eval_episodes_per_seed: int = param(
+        1,
+        "evaluation episodes per seeded reset: 1 = every episode on its own seed; n > 1 = streams of a "
+        "seeded reset and n - 1 unseeded ones (urban: a seeded reset costs a 150 s traffic warm-up)",
+        low=1,
+    )
+    eval_seed_base: int = param(
+        1_000_000_000,
+        "first evaluation seed: 1000000000 = the report set, 1500000000 = the tuning set (every choice of "
+        "settings is made on tuning seeds); training seeds must stay below 1000000000",
+        choices=(1_000_000_000, 1_500_000_000),
+    )
+    eval_mode: str = param(
+        "auto",
+        "where evaluations run: 'process' (a second process with its own env; training goes on meanwhile), "
+        "'inline' (in the training process, several envs in lockstep), 'auto' (process for SUMO envs, whose "
+        "libsumo allows one simulation per process; inline otherwise)",
+        choices=("auto", "process", "inline"),
+    )
     tensorboard: bool = param(True, "also write TensorBoard event files (metrics.csv is always written)")
     progress: bool = param(True, "show a progress bar (only on a terminal)")
     save_final_checkpoint: bool = param(True, "write checkpoint.pt when training ends")

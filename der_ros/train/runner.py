@@ -41,9 +41,21 @@ from der_ros.agent.dqn import DQNAgent, read_checkpoint
 from der_ros.experiments.stats import max_moving_average
 from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.envs import make_env_from_config, obs_spec
+from der_ros.train.evaluation import (
+    EVALUATIONS_CSV,
+    FINAL_EVAL_JSON,
+    EvalResult,
+    Evaluator,
+    check_training_seed,
+    make_evaluator,
+    net_state,
+    training_env_seed,
+    truncate_evaluations,
+    write_eval_row,
+)
 from der_ros.train.metrics import MeanAccumulator, MetricsWriter
 
-__all__ = ["RunSummary", "train", "default_run_dir", "replay_label", "evaluate"]
+__all__ = ["RunSummary", "train", "default_run_dir", "replay_label"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +76,9 @@ class RunSummary:
     mean_return: float
     max_ma20_return: float
     checkpoint: str | None
+    eval_success: float = math.nan
+    eval_collision: float = math.nan
+    eval_return: float = math.nan
 
 
 def replay_label(replay_cfg: Any) -> str:
@@ -164,35 +179,20 @@ class _Progress:
             self._progress.stop()
 
 
-def evaluate(agent: DQNAgent, env: gym.Env, episodes: int, seed: int) -> float:
-    """Mean return of ``episodes`` episodes with ``agent.act(explore=False)``; resets seeded ``seed + k``."""
-    returns = []
-    for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k)
-        total, done = 0.0, False
-        while not done:
-            obs, r, terminated, truncated, info = env.step(agent.act(obs, explore=False))
-            total += float(r)
-            done = bool(terminated or truncated)
-            if done and "episode" not in info and getattr(env.unwrapped, "ale", None) is not None:
-                # Atari with episodic life: only a game over ends an evaluation episode.
-                done = bool(truncated) or env.unwrapped.ale.game_over()
-                if not done:
-                    obs, _ = env.reset()
-        if "episode" in info:
-            total = float(np.asarray(info["episode"]["r"]))
-        returns.append(total)
-    return float(np.mean(returns))
-
-
 def train(
     cfg: ExperimentConfig,
     run_dir: str | Path | None = None,
     resume: str | Path | None = None,
     on_episode: Callable[[int, int, float], None] | None = None,
 ) -> RunSummary:
-    """Train per ``cfg``; returns a :class:`RunSummary`. ``resume``: a checkpoint written by a run."""
+    """Train per ``cfg``; returns a :class:`RunSummary`. ``resume``: a checkpoint written by a run.
+
+    Greedy evaluations (:mod:`der_ros.train.evaluation`) run at step 0, every ``eval_interval``
+    steps and at the end, on evaluation seeds no training run uses; they never touch the training
+    environment or the agent's RNGs, so a run trains the same with or without them.
+    """
     t_cfg = cfg.train
+    check_training_seed(t_cfg.seed)
     torch.set_num_threads(t_cfg.threads)
     run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
     run_path.mkdir(parents=True, exist_ok=True)
@@ -210,7 +210,6 @@ def train(
     wall_offset = 0.0
     obs: np.ndarray
     resume_step: int | None = None
-    runner_eval_pending: int | None = None
     if resume is not None:
         ckpt = read_checkpoint(resume, agent.device)
         agent.load_state_dict(ckpt["agent"])
@@ -221,24 +220,29 @@ def train(
         last_return = returns[-1] if returns else None
         wall_offset = float(runner["wall_time"])
         acc.load_state_dict(runner["accumulator"])
-        runner_eval_pending = runner.get("eval_pending")
         env_bytes = ckpt["extra"].get("env")
         if env_bytes is not None:
             env.close()
             env = pickle.loads(env_bytes)
             obs = np.asarray(runner["obs"])
         else:
-            obs, _ = env.reset(seed=t_cfg.seed + 1_000_003 * (1 + agent.steps))
+            obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
         log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
     else:
         obs, _ = env.reset(seed=t_cfg.seed)
 
     writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=resume_step)
-    eval_env: gym.Env | None = None
-    # libsumo runs one simulation per process: SUMO envs are evaluated on the training env at the
-    # next episode boundary instead of on a second env instance.
-    shared_eval = cfg.env.id.startswith("der_ros/")
-    eval_pending: int | None = runner_eval_pending
+    eval_csv = run_path / EVALUATIONS_CSV
+    if resume_step is not None:
+        truncate_evaluations(eval_csv, resume_step)
+    elif eval_csv.exists():
+        eval_csv.unlink()
+    evaluator: Evaluator | None = None
+    if t_cfg.eval_interval or t_cfg.final_eval_episodes:
+        evaluator = make_evaluator(cfg.env, obs_shape, obs_dtype, n_actions, cfg.agent.network,
+                                   cfg.agent.hidden_sizes, t_cfg.eval_episodes_per_seed, t_cfg.eval_seed_base,
+                                   mode=t_cfg.eval_mode)  # fmt: skip
+    last_eval: EvalResult | None = None
     progress = _Progress(t_cfg.total_steps, agent.steps, t_cfg.progress, f"{cfg.env.id} {replay_label(cfg.replay)}")
     t0 = time.perf_counter()
     log_t, log_step = t0, agent.steps
@@ -263,14 +267,28 @@ def train(
         if on_episode is not None:
             on_episode(episode, agent.steps, ret)
 
+    def record_evaluations(results: list[EvalResult]) -> None:
+        nonlocal last_eval
+        for res in sorted(results, key=lambda r: r.step):
+            write_eval_row(eval_csv, res)
+            row = res.summary()
+            writer.scalars(res.step, wall(), {f"eval/{k}": v for k, v in row.items() if k not in ("step", "wall_s")})
+            last_eval = res
+            log.debug("evaluation at step %d: %s", res.step, row)
+
+    def evaluate_now(episodes: int) -> None:
+        if evaluator is not None and episodes > 0:
+            evaluator.submit(agent.steps, net_state(agent.q_net), episodes)
+
     def checkpoint() -> Path:
+        if evaluator is not None:  # every evaluation up to this step is on disk before the checkpoint
+            record_evaluations(evaluator.finish())
         extra = {
             "runner": {
                 "episode": episode,
                 "returns": returns,
                 "wall_time": wall(),
                 "accumulator": acc.state_dict(),
-                "eval_pending": eval_pending,
                 "obs": np.array(obs, copy=True),
             },
             "env": _try_pickle_env(env),
@@ -281,6 +299,9 @@ def train(
 
     try:
         with _StopFlag() as stop:
+            if t_cfg.eval_interval and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps:
+                # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
+                evaluate_now(t_cfg.eval_episodes)
             while agent.steps < t_cfg.total_steps:
                 action = agent.act(obs)
                 next_obs, reward, terminated, truncated, info = env.step(action)
@@ -291,10 +312,6 @@ def train(
                 if "episode" in info:
                     record_episode(info)
                 if terminated or truncated:
-                    if eval_pending is not None:  # shared-simulation env: evaluate between episodes
-                        score = evaluate(agent, env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
-                        writer.scalars(agent.steps, wall(), {"charts/eval_return": score})
-                        eval_pending = None
                     next_obs, reset_info = env.reset()
                     if "episode" in reset_info:
                         record_episode(reset_info)
@@ -311,29 +328,36 @@ def train(
                     values.update(agent.replay.stats())
                     writer.scalars(step, wall(), values)
                     progress.update(step, last_return, sps)
-                if t_cfg.eval_interval and step % t_cfg.eval_interval == 0:
-                    if shared_eval:
-                        eval_pending = step
-                    else:
-                        if eval_env is None:
-                            eval_env = make_env_from_config(cfg.env, t_cfg.seed + 10_000)
-                        score = evaluate(agent, eval_env, t_cfg.eval_episodes, t_cfg.seed + 10_000)
-                        writer.scalars(step, wall(), {"charts/eval_return": score})
+                    if evaluator is not None:
+                        record_evaluations(evaluator.poll())
+                if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
+                    evaluate_now(t_cfg.eval_episodes)
                 if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
                     checkpoint()
                 if stop.stop:
                     interrupted = True
                     break
+            if not interrupted and evaluator is not None:
+                # the final evaluation (more episodes), or the last periodic one if there is none
+                evaluate_now(t_cfg.final_eval_episodes or (t_cfg.eval_episodes if t_cfg.eval_interval else 0))
+                record_evaluations(evaluator.finish())
+    except BaseException:
+        if evaluator is not None:  # no evaluation process outlives a failed run
+            evaluator.close()
+        raise
     finally:
         progress.close()
 
     ckpt_path: Path | None = None
     if interrupted or t_cfg.save_final_checkpoint:
         ckpt_path = checkpoint()
+    if evaluator is not None:
+        record_evaluations(evaluator.finish())
+        evaluator.close()
+    if not interrupted and last_eval is not None and last_eval.step == agent.steps:
+        last_eval.save(run_path / FINAL_EVAL_JSON)
     writer.close()
     env.close()
-    if eval_env is not None:
-        eval_env.close()
 
     elapsed = wall()
     summary = RunSummary(
@@ -346,6 +370,9 @@ def train(
         mean_return=float(np.mean(returns)) if returns else math.nan,
         max_ma20_return=max_moving_average(returns, 20),
         checkpoint=str(ckpt_path) if ckpt_path else None,
+        eval_success=last_eval.success_rate if last_eval and not interrupted else math.nan,
+        eval_collision=last_eval.collision_rate if last_eval and not interrupted else math.nan,
+        eval_return=last_eval.mean_return if last_eval and not interrupted else math.nan,
     )
     tmp = run_path / f".{SUMMARY_NAME}.tmp"
     tmp.write_text(json.dumps(summary.__dict__, indent=2, default=float))

@@ -1,0 +1,314 @@
+"""Baselines beside every learned result: trivial and scripted policies, and SUMO's own driver.
+
+A learned policy that does not beat "never change lane" means the task or the objective is
+broken, not that the method is weak; one that does not beat a simple gap-acceptance rule or
+SUMO's own lane-change model is not worth deploying. So every table evaluates, on the very same
+evaluation seeds as the learned agents (:mod:`der_ros.train.evaluation`):
+
+SUMO lane change (``der_ros/LaneChange*``):
+
+* ``keep`` -- never change lane;
+* ``immediate`` -- change towards the target lane at every step, whatever the traffic;
+* ``random`` -- uniformly random actions (seeded);
+* ``gap_acceptance`` -- change only into a gap that is big enough
+  (:func:`sumo_bridge.policies.gap_acceptance_policy`), with thresholds tuned on the *tuning*
+  evaluation seeds (:func:`tune_gap_acceptance`, ``der baselines --tune``) and frozen in
+  ``config/baselines.yaml``;
+* ``sumo`` -- SUMO's own lane-change model given a standing request to reach the target lane:
+  the immediate policy's command every step, with the ego's ``laneChangeMode`` at SUMO's default
+  1621, so SUMO carries a change out only when its own safety checks allow it.
+
+CartPole: ``random``, ``constant`` (always push left) and ``scripted`` (push towards where the
+pole falls: the sign of angle + 0.5 x angular velocity).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import itertools
+import json
+import logging
+import math
+import os
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from der_ros.configuration import ConfigError, read_yaml_mapping
+from der_ros.experiments.report import write_markdown
+from der_ros.train.config import EnvConfig, load_experiment_config
+from der_ros.train.envs import make_env_from_config
+from der_ros.train.evaluation import (
+    EVAL_SEED_BASE,
+    TUNING_EVAL_SEED_BASE,
+    EvalResult,
+    Policy,
+    evaluation_seeds,
+    run_episodes,
+)
+from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
+
+__all__ = [
+    "SUMO_BASELINES",
+    "CARTPOLE_BASELINES",
+    "GapAcceptanceParams",
+    "baseline_names",
+    "load_gap_params",
+    "baseline_policy",
+    "baseline_env_config",
+    "evaluate_baseline",
+    "run_baselines",
+    "tune_gap_acceptance",
+    "add_arguments",
+    "run",
+]
+
+log = logging.getLogger(__name__)
+
+SUMO_BASELINES = ("keep", "immediate", "random", "gap_acceptance", "sumo")
+CARTPOLE_BASELINES = ("random", "constant", "scripted")
+#: SUMO's default laneChangeMode: its own model, commanded changes only when safe (bits 8-9 = 10)
+SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
+DEFAULT_PARAMS_FILE = Path(__file__).resolve().parents[2] / "config" / "baselines.yaml"
+
+
+@dataclass(frozen=True)
+class GapAcceptanceParams:
+    """Thresholds of :func:`sumo_bridge.policies.gap_acceptance_policy` (metres, seconds)."""
+
+    lead_gap: float = 2.0
+    follow_gap: float = 3.0
+    time_headway: float = 1.0
+
+
+def _network(env_cfg: EnvConfig) -> str | None:
+    """'ring' / 'urban' for the SUMO ids, None otherwise."""
+    if env_cfg.id == "der_ros/LaneChangeRing-v0":
+        return "ring"
+    if env_cfg.id == "der_ros/LaneChangeUrban-v0":
+        return "urban"
+    return None
+
+
+def baseline_names(env_cfg: EnvConfig) -> tuple[str, ...]:
+    """The baselines of this environment (none for Atari)."""
+    if _network(env_cfg) is not None:
+        return SUMO_BASELINES
+    if env_cfg.id.startswith("CartPole"):
+        return CARTPOLE_BASELINES
+    return ()
+
+
+def load_gap_params(network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> GapAcceptanceParams:
+    """The tuned gap-acceptance thresholds of ``network`` from ``config/baselines.yaml``."""
+    data = read_yaml_mapping(Path(path), expected="a mapping of baselines")
+    section = (data.get("gap_acceptance") or {}).get(network)
+    if not isinstance(section, dict):
+        raise ConfigError(f"{path}: gap_acceptance.{network} missing, expected lead_gap/follow_gap/time_headway")
+    unknown = set(section) - {"lead_gap", "follow_gap", "time_headway"}
+    if unknown:
+        raise ConfigError(f"{path}: gap_acceptance.{network}: unknown keys {sorted(unknown)}")
+    try:
+        params = GapAcceptanceParams(**{k: float(v) for k, v in section.items()})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{path}: gap_acceptance.{network} = {section!r}: {exc}") from None
+    for k, v in params.__dict__.items():
+        if not math.isfinite(v) or v < 0:
+            raise ConfigError(f"{path}: gap_acceptance.{network}.{k} = {v!r}, expected a finite value >= 0")
+    return params
+
+
+def _per_env(rule: Any) -> Policy:
+    return lambda obs, infos: [int(rule(info["points"])) for info in infos]
+
+
+def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int = 0) -> Policy:
+    """The batched policy of baseline ``name`` (points-based for SUMO, observation-based for CartPole)."""
+    if name == "keep":
+        return _per_env(keep_policy)
+    if name in ("immediate", "sumo"):
+        return _per_env(immediate_policy)
+    if name == "gap_acceptance":
+        g = gap or GapAcceptanceParams()
+        return _per_env(lambda p: gap_acceptance_policy(p, g.lead_gap, g.follow_gap, g.time_headway))
+    if name == "random":
+        rng = np.random.default_rng(seed)
+        return lambda obs, infos: [int(a) for a in rng.integers(0, 3 if "points" in infos[0] else 2, size=len(obs))]
+    if name == "constant":
+        return lambda obs, infos: [0] * len(obs)
+    if name == "scripted":
+        return lambda obs, infos: [int(o[2] + 0.5 * o[3] > 0) for o in obs]
+    raise ValueError(f"baseline {name!r} unknown; expected one of {', '.join(SUMO_BASELINES + CARTPOLE_BASELINES)}")
+
+
+def baseline_env_config(env_cfg: EnvConfig, name: str) -> EnvConfig:
+    """The env config a baseline runs on (``sumo``: the ego's laneChangeMode at SUMO's default)."""
+    if name != "sumo":
+        return env_cfg
+    out = copy.deepcopy(env_cfg)
+    kwargs = dict(out.kwargs)
+    scenario = dict(kwargs.get("scenario") or {})
+    scenario["ego_lane_change_mode"] = SUMO_DEFAULT_LANE_CHANGE_MODE
+    kwargs["scenario"] = scenario
+    out.kwargs = kwargs
+    return out
+
+
+def evaluate_baseline(
+    env_cfg: EnvConfig,
+    name: str,
+    episodes: int,
+    episodes_per_seed: int = 1,
+    seed_base: int = EVAL_SEED_BASE,
+    gap: GapAcceptanceParams | None = None,
+    parallel_envs: int = 1,
+) -> EvalResult:
+    """Run baseline ``name`` on the evaluation seeds (in this process; one env for SUMO)."""
+    import time
+
+    t0 = time.perf_counter()
+    n_streams = math.ceil(episodes / episodes_per_seed)
+    seeds = evaluation_seeds(n_streams, seed_base)
+    is_sumo = _network(env_cfg) is not None
+    envs = [make_env_from_config(baseline_env_config(env_cfg, name), seed_base + i)
+            for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
+    try:
+        eps = run_episodes(baseline_policy(name, gap), envs, seeds, episodes, episodes_per_seed)
+    finally:
+        for env in envs:
+            env.close()
+    return EvalResult(step=0, episodes=eps, seeds=seeds, wall_s=time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class BaselineJob:
+    """One baseline evaluation, picklable for a worker process; cached in ``out_dir/evaluation.json``."""
+
+    env_cfg: EnvConfig
+    name: str
+    episodes: int
+    episodes_per_seed: int
+    seed_base: int
+    gap: GapAcceptanceParams | None
+    out_dir: str
+
+    def cached(self) -> EvalResult | None:
+        path = Path(self.out_dir) / "evaluation.json"
+        meta = Path(self.out_dir) / "baseline.json"
+        if not (path.is_file() and meta.is_file()):
+            return None
+        if json.loads(meta.read_text()) != self.meta():
+            return None  # other settings: redo
+        return EvalResult.load(path)
+
+    def meta(self) -> dict[str, Any]:
+        return {"name": self.name, "env": self.env_cfg.id, "kwargs": self.env_cfg.kwargs, "episodes": self.episodes,
+                "episodes_per_seed": self.episodes_per_seed, "seed_base": self.seed_base,
+                "gap": None if self.gap is None else self.gap.__dict__}  # fmt: skip
+
+
+def _run_job(job: BaselineJob) -> dict[str, Any]:
+    res = evaluate_baseline(job.env_cfg, job.name, job.episodes, job.episodes_per_seed, job.seed_base, job.gap,
+                            parallel_envs=16)  # fmt: skip
+    out = Path(job.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res.save(out / "evaluation.json")
+    (out / "baseline.json").write_text(json.dumps(job.meta(), default=str))
+    return res.to_json()
+
+
+def run_baselines(jobs: Sequence[BaselineJob], n_jobs: int | None = None) -> dict[str, EvalResult]:
+    """Evaluate the baselines (cached ones are read back), in spawned processes (one libsumo each)."""
+    out: dict[str, EvalResult] = {}
+    todo = []
+    for job in jobs:
+        hit = job.cached()
+        if hit is not None:
+            out[job.out_dir] = hit
+        else:
+            todo.append(job)
+    if todo:
+        workers = max(1, min(n_jobs or os.cpu_count() or 1, len(todo)))
+        log.info("%d baseline evaluations to run (%d cached), %d in parallel", len(todo), len(jobs) - len(todo), workers)
+        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+            for job, res in zip(todo, pool.map(_run_job, todo)):
+                out[job.out_dir] = EvalResult.from_json(res)
+                log.info("baseline %s on %s: success %.3f, collision %.3f, return %.2f", job.name, job.env_cfg.id,
+                         out[job.out_dir].success_rate, out[job.out_dir].collision_rate,
+                         out[job.out_dir].mean_return)  # fmt: skip
+    return out
+
+
+#: the grid of :func:`tune_gap_acceptance`
+GAP_GRID = {"lead_gap": (0.5, 1.0, 2.0), "follow_gap": (1.0, 2.0, 3.0, 4.0), "time_headway": (0.25, 0.5, 1.0)}
+
+
+def tune_gap_acceptance(
+    env_cfg: EnvConfig, episodes: int, episodes_per_seed: int, out_dir: str | Path, max_collision: float = 0.01,
+    n_jobs: int | None = None,
+) -> tuple[GapAcceptanceParams, list[tuple[GapAcceptanceParams, EvalResult]]]:
+    """Grid search on the *tuning* evaluation seeds: the highest success among thresholds whose
+    caused-collision rate is at most ``max_collision`` (ties: fewer collisions, then higher return)."""
+    grid = [GapAcceptanceParams(*combo) for combo in itertools.product(*GAP_GRID.values())]
+    jobs = [BaselineJob(env_cfg, "gap_acceptance", episodes, episodes_per_seed, TUNING_EVAL_SEED_BASE, g,
+                        str(Path(out_dir) / f"lead{g.lead_gap}_follow{g.follow_gap}_hw{g.time_headway}"))
+            for g in grid]  # fmt: skip
+    results = run_baselines(jobs, n_jobs)
+    scored = [(g, results[j.out_dir]) for g, j in zip(grid, jobs)]
+    safe = [s for s in scored if s[1].collision_rate <= max_collision] or scored
+    best = max(safe, key=lambda s: (s[1].success_rate, -s[1].collision_rate, s[1].mean_return))
+    return best[0], scored
+
+
+# ----------------------------------------------------------------------------- CLI
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("config", nargs="+", help="training YAML(s) whose env the baselines run on")
+    parser.add_argument("--episodes", type=int, default=300, help="evaluation episodes per baseline (default 300)")
+    parser.add_argument("--tune", action="store_true",
+                        help="tune the gap-acceptance thresholds on the tuning seeds instead (writes --out/tuning.md)")  # fmt: skip
+    parser.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="tuned thresholds (config/baselines.yaml)")
+    parser.add_argument("--out", default="runs/baselines", help="folder of the cached evaluations")
+    parser.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
+
+
+def run(args: argparse.Namespace) -> int:
+    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Mean return |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for path in args.config:
+        cfg = load_experiment_config(path)
+        env_cfg, per_seed = cfg.env, cfg.train.eval_episodes_per_seed
+        net = _network(env_cfg)
+        if args.tune:
+            if net is None:
+                raise ConfigError(f"{path}: --tune is for the SUMO lane-change envs, got env.id = {env_cfg.id!r}")
+            best, scored = tune_gap_acceptance(env_cfg, args.episodes, per_seed, Path(args.out) / "tuning" / net,
+                                               n_jobs=args.jobs)  # fmt: skip
+            rows = ["| lead_gap | follow_gap | time_headway | success | caused collision | return |", "|---|---|---|---|---|---|"]
+            rows += [f"| {g.lead_gap} | {g.follow_gap} | {g.time_headway} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
+                     f"| {r.mean_return:.2f} |" for g, r in sorted(scored, key=lambda s: -s[1].success_rate)]  # fmt: skip
+            md = write_markdown(Path(args.out) / "tuning" / f"gap_acceptance_{net}.md", [
+                f"# Gap acceptance on {net}: tuning", "",
+                f"{args.episodes} episodes per setting on the tuning evaluation seeds ({TUNING_EVAL_SEED_BASE} + k); "
+                "best = highest success with at most 1% caused collisions.", "",
+                f"Best: `{yaml.safe_dump(best.__dict__, default_flow_style=True).strip()}`", "", *rows, ""])  # fmt: skip
+            print(md.read_text())
+            continue
+        gap = load_gap_params(net, args.params) if net else None
+        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, EVAL_SEED_BASE,
+                            gap if name == "gap_acceptance" else None, str(Path(args.out) / (net or env_cfg.id) / name))
+                for name in baseline_names(env_cfg)]  # fmt: skip
+        results = run_baselines(jobs, args.jobs)
+        for job in jobs:
+            r = results[job.out_dir]
+            lines.append(f"| {env_cfg.id} | {job.name} | {r.n} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
+                         f"| {r.time_limit_rate:.3f} | {r.mean_return:.2f} |")  # fmt: skip
+    if not args.tune:
+        print("\n".join(lines))
+    return 0
