@@ -111,3 +111,36 @@ def test_resumed_run_redoes_no_evaluation_and_matches_the_full_run(tmp_path: Pat
     split = read_evaluations(tmp_path / "split" / "evaluations.csv")
     for key in ("step", "episodes", "mean_return"):
         assert full[key].tolist() == split[key].tolist()
+
+
+def test_the_evaluation_process_exits_when_its_trainer_is_killed(tmp_path: Path) -> None:
+    """A SIGKILLed training process leaves no evaluation process behind (it polls its parent)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "trainer.py"
+    script.write_text(
+        "import sys, time\n"
+        "from der_ros.train.config import EnvConfig\n"
+        "from der_ros.train.evaluation import make_evaluator\n"
+        "ev = make_evaluator(EnvConfig(id='CartPole-v1'), (4,), 'float32', 2, 'mlp', [8], 1, 1_000_000_000, mode='process')\n"
+        "print(ev._proc.pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    child = int(proc.stdout.readline())
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.2)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError("the evaluation process outlived its killed trainer by 30 s")

@@ -477,10 +477,16 @@ def _worker(spec: EvalSpec, jobs: Any, results: Any) -> None:
     import torch
 
     torch.set_num_threads(1)
+    parent = os.getppid()
     envs = _make_envs(spec, 1)
     try:
         while True:
-            job = jobs.get()
+            try:
+                job = jobs.get(timeout=1.0)
+            except queue.Empty:
+                if os.getppid() != parent:  # the trainer died (e.g. SIGKILL): no orphan evaluator
+                    break
+                continue
             if job is None:
                 break
             step, state, episodes = job
