@@ -52,9 +52,14 @@ float32, shape ``(EGO_FEATURES + 3 * len(SLOT_NAMES),)``, every entry in [-1, 1]
   ``has_left_lane`` (0/1); ``has_right_lane`` (0/1);
 * per slot, in ``SLOT_NAMES`` order: ``present`` (0/1); ``gap / neighbour_range`` clipped to
   [-1, 1] (an empty slot reads 1.0, "free up to the range"); ``rel_speed / speed_scale``
-  clipped to [-1, 1] (0.0 for an empty slot).
+  clipped to [-1, 1] (0.0 for an empty slot); ``gap / near_gap_range`` clipped to [-1, 1]
+  (1.0 for an empty slot).
 
-The present flag keeps "empty" distinguishable from "a vehicle exactly at the range".
+The present flag keeps "empty" distinguishable from "a vehicle exactly at the range". The second,
+short-range gap channel gives the network resolution where a lane change is decided: whether the
+target-lane follower overlaps the ego by half a metre (a collision) or leaves a metre free (safe)
+is 0.05 apart in ``gap / 30 m`` but 0.3 apart in ``gap / 5 m``. On the tuning seeds it cut the
+greedy DQN's caused collisions on the ring from 3-13% to 1-1.3% (README, "Design choices").
 """
 
 from __future__ import annotations
@@ -109,7 +114,7 @@ SLOT_NAMES: tuple[str, ...] = (
 #: Names of the ego part of the observation vector.
 EGO_FEATURES: tuple[str, ...] = ("speed", "lane", "target_direction", "has_left_lane", "has_right_lane")
 #: Names of the per-slot part of the observation vector.
-SLOT_FEATURES: tuple[str, ...] = ("present", "gap", "rel_speed")
+SLOT_FEATURES: tuple[str, ...] = ("present", "gap", "rel_speed", "near_gap")
 
 _COL = {name: i for i, name in enumerate(POINT_FIELDS)}
 _SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
@@ -133,10 +138,17 @@ class ObservationConfig:
     )
     speed_scale: float = param(20.0, "speed (m/s) that maps to 1.0 in the observation", low=0.1)
     max_lanes: int = param(3, "largest lane count of the network, for normalising the lane index", low=2, high=16)
+    near_gap_range: float = param(
+        5.0,
+        "gap in metres that maps to 1.0 in the second, short-range gap channel (resolution where a lane "
+        "change is decided: a small overlap vs. a small free gap)",
+        low=0.1,
+    )
 
     def check(self) -> None:
-        if not np.isfinite(self.neighbour_range):
-            raise ConfigError(f"neighbour_range = {self.neighbour_range!r}, expected a finite number")
+        for name in ("neighbour_range", "near_gap_range"):
+            if not np.isfinite(getattr(self, name)):
+                raise ConfigError(f"{name} = {getattr(self, name)!r}, expected a finite number")
 
 
 def empty_points() -> np.ndarray:
@@ -187,7 +199,7 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
     # NaN and signed zeros included) without the builtin calls, which dominate at this size.
     ego = rows[0]
     lane = ego[_LANE]
-    speed_scale, rng = cfg.speed_scale, cfg.neighbour_range
+    speed_scale, rng, near = cfg.speed_scale, cfg.neighbour_range, cfg.near_gap_range
     v = ego[_SPEED] / speed_scale
     m = 0.0 if 0.0 > v else v
     out = [1.0 if 1.0 < m else m]
@@ -205,7 +217,9 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
             g = -1.0 if -1.0 > g else g
             r = row[_REL] / speed_scale
             r = -1.0 if -1.0 > r else r
-            out += (1.0, 1.0 if 1.0 < g else g, 1.0 if 1.0 < r else r)
+            n = row[_GAP] / near
+            n = -1.0 if -1.0 > n else n
+            out += (1.0, 1.0 if 1.0 < g else g, 1.0 if 1.0 < r else r, 1.0 if 1.0 < n else n)
         else:
-            out += (0.0, 1.0, 0.0)
+            out += (0.0, 1.0, 0.0, 1.0)
     return np.array(out, dtype=np.float32)

@@ -34,9 +34,10 @@ def _reference(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
     for row in points[1:]:
         if row[C["present"]] > 0.5:
             out += [1.0, np.clip(row[C["gap"]] / cfg.neighbour_range, -1.0, 1.0),
-                    np.clip(row[C["rel_speed"]] / cfg.speed_scale, -1.0, 1.0)]  # fmt: skip
+                    np.clip(row[C["rel_speed"]] / cfg.speed_scale, -1.0, 1.0),
+                    np.clip(row[C["gap"]] / cfg.near_gap_range, -1.0, 1.0)]  # fmt: skip
         else:
-            out += [0.0, 1.0, 0.0]
+            out += [0.0, 1.0, 0.0, 1.0]
     return np.array(out, dtype=np.float32)
 
 
@@ -50,9 +51,10 @@ def _builtin_reference(rows: list[list[float]], cfg: ObservationConfig) -> np.nd
     for row in rows[1:]:
         if row[C["present"]] > 0.5:
             out += (1.0, min(max(row[C["gap"]] / cfg.neighbour_range, -1.0), 1.0),
-                    min(max(row[C["rel_speed"]] / cfg.speed_scale, -1.0), 1.0))  # fmt: skip
+                    min(max(row[C["rel_speed"]] / cfg.speed_scale, -1.0), 1.0),
+                    min(max(row[C["gap"]] / cfg.near_gap_range, -1.0), 1.0))  # fmt: skip
         else:
-            out += (0.0, 1.0, 0.0)
+            out += (0.0, 1.0, 0.0, 1.0)
     return np.array(out, dtype=np.float32)
 
 
@@ -70,7 +72,8 @@ def _random_points(rng: np.random.Generator) -> np.ndarray:
     return pts
 
 
-@pytest.mark.parametrize("cfg", [ObservationConfig(), ObservationConfig(neighbour_range=12.5, speed_scale=7.0, max_lanes=5)])
+@pytest.mark.parametrize("cfg", [ObservationConfig(),
+                                 ObservationConfig(neighbour_range=12.5, speed_scale=7.0, max_lanes=5, near_gap_range=2.5)])
 def test_list_route_equals_array_route_and_the_formula(cfg: ObservationConfig) -> None:
     rng = np.random.default_rng(7)
     for _ in range(500):
@@ -86,3 +89,19 @@ def test_list_route_equals_array_route_and_the_formula(cfg: ObservationConfig) -
 def test_wrong_shape_is_rejected_with_the_expected_shape() -> None:
     with pytest.raises(ValueError, match=r"shape \(6, 12\), expected \(7, 12\)"):
         encode_observation(np.zeros((6, 12)), ObservationConfig())
+
+
+def test_the_near_gap_channel_resolves_what_decides_a_lane_change() -> None:
+    """Half a metre of overlap and one metre free are far apart in the near channel (the 30 m one barely
+    tells them apart): the reason the channel exists (observation module docstring)."""
+    cfg = ObservationConfig()
+    obs = []
+    for gap in (-0.5, 1.0):
+        pts = empty_points()
+        row = 1 + SLOT_NAMES.index("left_follower")
+        pts[row, C["present"]], pts[row, C["gap"]] = 1.0, gap
+        obs.append(encode_observation(pts, cfg))
+    base = 5 + 4 * SLOT_NAMES.index("left_follower")
+    assert obs[1][base + 1] - obs[0][base + 1] == pytest.approx(1.5 / 30.0)
+    assert obs[1][base + 3] - obs[0][base + 3] == pytest.approx(1.5 / 5.0)
+    assert observation_size() == 5 + 4 * len(SLOT_NAMES) == 29
