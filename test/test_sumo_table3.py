@@ -1,11 +1,10 @@
-"""Table 3 plumbing: a short SUMO training run logs episode events; the table reads them back.
-
-Real training (tiny), real env, real files; the paper's numbers and the run's rates must appear.
-"""
+"""Table 3 plumbing: a short SUMO training run logs episode events and its greedy evaluation; the
+table reads them back. Real training (tiny), real env, real files."""
 
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import pytest
@@ -30,6 +29,8 @@ def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> N
         "train.save_final_checkpoint": False,
         "agent.learning_starts": 64,
         "agent.batch_size": 32,
+        "train.eval_interval": 0,
+        "train.final_eval_episodes": 3,
     }
     cfg = load_experiment_config(spec.config_path, overrides)
     train(cfg, run_dir=spec.run_dir)
@@ -44,13 +45,17 @@ def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> N
     assert len(succ) == len(coll) == n_episodes  # one event row per finished episode
     assert set(succ.tolist()) <= {0.0, 1.0} and not any(succ * coll)  # an episode is one or the other
     scores = score_run(run)
-    assert scores["success"] == pytest.approx(succ.mean())
-    assert scores["collision"] == pytest.approx(coll.mean())
-    assert scores["total_reward"] == pytest.approx(run.returns.mean())
+    assert scores["train_total_reward"] == pytest.approx(run.returns.mean())
+    final = run.spec.run_dir + "/evaluation.json"
+    summary = json.loads(Path(final).read_text())["summary"]
+    assert scores["eval_success"] == pytest.approx(summary["success"])
+    assert scores["eval_collision"] == pytest.approx(summary["collision"])
+    assert scores["eval_return"] == pytest.approx(summary["mean_return"]) and scores["eval_episodes"] == 3
 
-    md = write_table3({"ring": {method.name: [run]}}, {method.name: method.label}, tmp_path / "table3.md",
-                      "der table3 ...", [0], {"ring": 120}, 1.0)  # fmt: skip
+    md, js = write_table3({"ring": {method.name: [run]}}, {method.name: method.label}, {}, tmp_path / "table3.md",
+                          "der table3 ...", [0], {"ring": 120}, 1.0)  # fmt: skip
     text = md.read_text()
     assert f"{PAPER_TABLE3['ring']['der0.9']:.2f}" in text
-    assert f"{scores['success']:.3f}" in text and f"{scores['total_reward']:.2f}" in text
-    assert "eclipse-sumo" in text
+    assert f"| ring | λ = 0.9 | 0 | {scores['eval_success']:.3f} | {scores['eval_collision']:.3f} " in text
+    assert f"{scores['train_total_reward']:.2f}" in text and "eclipse-sumo" in text
+    assert json.loads(js.read_text())["ring"]["der0.9"]["seeds"] == [0]

@@ -24,7 +24,8 @@ from typing import Any
 import yaml
 
 from der_ros.configuration import ConfigError
-from der_ros.experiments.aggregate import final_evaluation, iqm_interval, mean_interval
+from der_ros.experiments.aggregate import final_evaluation, iqm_interval
+from der_ros.experiments.aggregate import iqm as iqm_point
 from der_ros.experiments.report import write_markdown
 from der_ros.experiments.stats import average_score, max_moving_average
 from der_ros.experiments.suite import (
@@ -132,6 +133,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_set_argument(parser, help="config override for every run; VALUE is YAML (repeatable)")
 
 
+def _mean(values: Sequence[float]) -> float:
+    clean = [v for v in values if not math.isnan(v)]
+    return sum(clean) / len(clean) if clean else math.nan
+
+
 def sweep_command(args: argparse.Namespace) -> str:
     parts = ["der", "sweep", str(args.config)]
     for g in args.grid:
@@ -169,13 +175,13 @@ def write_sweep(
     ]
     for i, (_, m, per, rank) in enumerate(rows, 1):
         def iqm(key: str, digits: int = 3, per: list[dict[str, float]] = per) -> str:
-            v = iqm_interval([s[key] for s in per]).value
-            return "n/a" if math.isnan(v) else f"{v:.{digits}f}"
+            values = [s[key] for s in per if not math.isnan(s[key])]
+            return "n/a" if not values else f"{float(iqm_point(values)):.{digits}f}"
 
         lines.append(
             f"| {i} | `{m.name}` | {rank.format(3)} | {iqm('eval_success')} | {iqm('eval_collision')} "
-            f"| {iqm('eval_return', 2)} | {mean_interval([s['max_ma20'] for s in per]).value:.2f} "
-            f"| {mean_interval([s['avg_score'] for s in per]).value:.2f} |"
+            f"| {iqm('eval_return', 2)} | {_mean([s['max_ma20'] for s in per]):.2f} "
+            f"| {_mean([s['avg_score'] for s in per]):.2f} |"
         )
     lines += ["", "## Runs", "", f"- command: `{command}`", f"- seeds: {', '.join(map(str, seeds))}"]
     lines += [f"- {k}: {v}" for k, v in environment_info().items()]
