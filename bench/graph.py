@@ -132,7 +132,7 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path) 
         procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + _param_args(agent_params),
                                       env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
         bridge = subprocess.Popen(
-            base + ["sumo_bridge.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
+            base + ["der_ros.nodes.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
             env=env, stdout=bridge_log, stderr=subprocess.STDOUT, start_new_session=True)
         procs.append(bridge)
         code = bridge.wait(timeout=60 + steps / 20)

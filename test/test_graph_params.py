@@ -15,7 +15,7 @@ from der_ros.nodes.params import flat_specs, unflatten
 PARAMS = Path(__file__).resolve().parents[1] / "config" / "graph.params.yaml"
 #: node name in the YAML -> module defining parameter_sections()
 NODES = {
-    "bridge_node": "sumo_bridge.bridge_node",
+    "bridge_node": "der_ros.nodes.bridge_node",
     "agent_node": "der_ros.nodes.agent_node",
     "recorder_node": "der_ros.nodes.recorder_node",
 }

@@ -39,7 +39,7 @@ class FakeAgent:
         self.clocks = self.probe.collect("/clock", Clock, qos=BEST_EFFORT)
         self.odoms = self.probe.collect("ego/odom", Odometry, qos=qos_profile_sensor_data)
         self.cmd = self.probe.publisher("lane_change_cmd", Joy)
-        self.proc = graph.start_node("sumo_bridge.bridge_node", params=base)
+        self.proc = graph.start_node("der_ros.nodes.bridge_node", params=base)
 
     def state(self, k: int, timeout: float = 30.0) -> PointCloud2:
         stamp = k * STEP_NS

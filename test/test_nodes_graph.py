@@ -100,7 +100,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
         params={**AGENT_OVERRIDES, "metrics_every": 5, "checkpoint_out": str(ckpt)},
     )
     bridge = ros_graph.start_node(
-        "sumo_bridge.bridge_node",
+        "der_ros.nodes.bridge_node",
         params_file=PARAMS_FILE,
         params={"max_steps": MAX_STEPS, "command_timeout": 5.0, "diagnostics_every": 50, "min_subscribers": 2},
     )

@@ -27,8 +27,8 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from der_ros.nodes.agent_node import AgentNode
+    from der_ros.nodes.bridge_node import BridgeNode
     from der_ros.nodes.recorder_node import RecorderNode
-    from sumo_bridge.bridge_node import BridgeNode
 
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
     rclpy.init(args=list(sys.argv if argv is None else argv), signal_handler_options=SignalHandlerOptions.NO)

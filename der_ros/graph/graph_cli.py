@@ -42,7 +42,7 @@ log = logging.getLogger("der.graph")
 NODES: dict[str, tuple[str, str]] = {
     "recorder_node": ("der_ros.nodes.recorder_node", r"recorder ready"),
     "agent_node": ("der_ros.nodes.agent_node", r"agent ready"),
-    "bridge_node": ("sumo_bridge.bridge_node", r"bridge ready"),
+    "bridge_node": ("der_ros.nodes.bridge_node", r"bridge ready"),
 }
 START_ORDER = ("recorder_node", "agent_node", "bridge_node")
 STOP_ORDER = ("bridge_node", "agent_node", "recorder_node")

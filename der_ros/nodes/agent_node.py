@@ -136,7 +136,7 @@ class AgentNode(Node):
         self._last_saved_step = self.agent.steps
         self._last_metrics: dict[str, float] = {}
 
-        from sumo_bridge.bridge_node import qos_profiles
+        from der_ros.nodes.bridge_node import qos_profiles
 
         q = qos_profiles()
         self.pub_cmd = self.create_publisher(Joy, "lane_change_cmd", q["lane_change_cmd"])
