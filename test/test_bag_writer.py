@@ -20,7 +20,6 @@ from mcap.stream_reader import StreamReader
 from rosbags.interfaces import QosDurability, QosReliability
 from rosbags.rosbag2 import Reader
 
-from der_ros.bag.topics import TOPICS, QosSpec, default_record_topics, topic_by_name, topics_markdown
 from der_ros.bag.writer import (
     EPISODES_KEY,
     FINALIZED_KEY,
@@ -30,6 +29,7 @@ from der_ros.bag.writer import (
     read_episode_summary,
     recover_bag,
 )
+from der_ros.contract import QosSpec
 
 TS = jazzy_typestore()
 T = TS.types
@@ -269,33 +269,3 @@ def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path) -> None:
         with pytest.raises(Exception):  # noqa: B017 - any error type: the file has no footer
             list(make_reader(f).iter_messages())
     assert os.path.getsize(bag / "killed_0.mcap") > 0
-
-
-def test_topic_table() -> None:
-    names = [t.name for t in TOPICS]
-    assert names == default_record_topics()
-    assert {"/clock", "state", "reward", "episode", "lane_change_cmd", "agent/metrics", "ego/odom"} <= set(names)
-    store = jazzy_typestore()
-    for t in TOPICS:
-        assert t.msgtype in store.fielddefs, t.msgtype
-    assert topic_by_name("/robot1/agent/metrics").name == "agent/metrics"
-    assert topic_by_name("/episode").name == "episode"
-    assert topic_by_name("/other") is None
-    md = topics_markdown()
-    rows = [ln for ln in md.splitlines() if ln.startswith("| `")]
-    assert len(rows) == len(TOPICS)
-    assert "| `state` | sensor_msgs/PointCloud2 |" in md and "RELIABLE, KEEP_LAST 50" in md
-    assert "BEST_EFFORT, KEEP_LAST 5" in md  # ego/odom: sensor data
-    spec = QosSpec(reliability="best_effort", depth=3)
-    assert QosSpec.from_rosbag2(spec.to_rosbag2()) == spec
-    with pytest.raises(ValueError, match="reliability"):
-        QosSpec(reliability="sometimes")
-
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-@pytest.mark.skipif(not README.exists(), reason="README.md not written yet")
-def test_readme_topic_table_is_the_rendered_table() -> None:
-    """The README's topic table is ``topics_markdown()`` verbatim (regenerate it when TOPICS changes)."""
-    assert topics_markdown() in README.read_text()

@@ -13,7 +13,7 @@ from rclpy.qos import QoSProfile
 from ros_harness import REPO, ros_domain, ros_graph, wait_for  # noqa: F401 - fixtures
 from sensor_msgs.msg import PointCloud2
 
-from der_ros.nodes import msg_conversions as mc
+from der_ros import contract as ct
 
 pytestmark = pytest.mark.ros
 
@@ -115,7 +115,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
     n_ends = int(s["events/success"] + s["events/collision"] + s["events/time_limit"])
 
     def episode_ends():
-        found = [e for m in list(episodes) for e in mc.parse_episode_events(m) if e[1] != "start"]
+        found = [e for m in list(episodes) for e in ct.parse_episode_events(m) if e[1] != "start"]
         return found if len(found) == n_ends else None
 
     ends = wait_for(episode_ends, 10, what=f"{n_ends} episode end events")
@@ -124,7 +124,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
 
     def last_with(key):
         for m in reversed(list(metrics)):
-            values = mc.diagnostics_to_metrics(m)
+            values = ct.diagnostics_to_metrics(m)
             if key in values:
                 return values
         return None

@@ -34,6 +34,8 @@ from typing import IO, Any
 
 import yaml
 
+from der_ros.contract import parse_qos_profiles
+
 __all__ = [
     "BagError",
     "TruncatedBagWarning",
@@ -41,7 +43,6 @@ __all__ = [
     "Message",
     "BagReader",
     "open_bag",
-    "parse_qos_profiles",
 ]
 
 log = logging.getLogger(__name__)
@@ -77,41 +78,6 @@ class BagError(Exception):
 
 class TruncatedBagWarning(UserWarning):
     """The bag was cut short (no MCAP footer/summary); messages before the cut are still read."""
-
-
-def parse_qos_profiles(text: str | None) -> tuple[dict[str, Any], ...]:
-    """rosbag2's ``offered_qos_profiles`` (a YAML list of dicts) -> tuple of dicts; () if absent.
-
-    Both spellings are accepted: names (metadata version >= 9) and the integer enums of older
-    rosbag2 versions, normalised to names (``reliable``, ``keep_last``, ...).
-    """
-    if not text:
-        return ()
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError:
-        log.warning("unreadable offered_qos_profiles %r; using default QoS", text[:80])
-        return ()
-    if not isinstance(data, list):
-        return ()
-    enums = {
-        "history": {0: "system_default", 1: "keep_last", 2: "keep_all"},
-        "reliability": {0: "system_default", 1: "reliable", 2: "best_effort", 4: "best_available"},
-        "durability": {0: "system_default", 1: "transient_local", 2: "volatile", 4: "best_available"},
-    }
-    out = []
-    for prof in data:
-        if not isinstance(prof, dict):
-            continue
-        prof = dict(prof)
-        for key, table in enums.items():
-            value = prof.get(key)
-            if isinstance(value, int):
-                prof[key] = table.get(value, "system_default")
-            elif isinstance(value, str):
-                prof[key] = value.lower()
-        out.append(prof)
-    return tuple(out)
 
 
 @dataclass(eq=False)

@@ -23,7 +23,14 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from der_ros.bag.episodes import scan_bag
+from der_ros.bag.export import build_transitions, save_transitions
+from der_ros.bag.offline_train import add_train_arguments, run_train
+from der_ros.bag.plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader, TruncatedBagWarning
+from der_ros.configuration import load_yaml
+from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
+from sumo_bridge.observation import ObservationConfig
 
 __all__ = ["add_arguments", "run", "bag_info"]
 
@@ -56,14 +63,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default=None)
 
     p = sub.add_parser("train", help="train a DQN offline from recorded transitions, then evaluate it in SUMO")
-    from der_ros.bag.offline_train import add_train_arguments
-
     add_train_arguments(p)
 
     p = sub.add_parser("play", help="publish the recorded messages into a ROS 2 graph (needs rclpy)")
-    from der_ros.bag.play import add_play_arguments
-
-    add_play_arguments(p)
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
+    p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
+    p.add_argument("--topics", nargs="+", default=None, help="publish only these topics")
+    p.add_argument("--clock", action="store_true", help="publish /clock from the log times if the bag has no /clock")
+    p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="SECONDS",
+                   help="before playing, wait up to this long until every topic has a subscriber")
+    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -85,32 +95,12 @@ def _show_warning(message: Warning | str, category: type[Warning], *_a: Any, **_
 # -- info -----------------------------------------------------------------------------------------
 
 
-def _qos_text(profiles: tuple[dict[str, Any], ...]) -> str:
-    if not profiles:
-        return "-"
-    p = profiles[0]
-    parts = [str(p.get("reliability", "?")).upper()]
-    hist = str(p.get("history", "unknown")).lower()
-    if hist == "keep_last" and p.get("depth"):
-        parts.append(f"KEEP_LAST {p['depth']}")
-    elif hist == "keep_all":
-        parts.append("KEEP_ALL")
-    durability = str(p.get("durability", "volatile")).upper()
-    if durability != "VOLATILE" or len(parts) == 1:
-        parts.append(durability)
-    if len(profiles) > 1:
-        parts.append(f"({len(profiles)} publishers)")
-    return ", ".join(parts)
-
-
 def _finite(x: float) -> float | None:
     return x if isinstance(x, (int, float)) and math.isfinite(x) else None
 
 
 def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
     """The ``der replay info --json`` document (schema version :data:`INFO_SCHEMA_VERSION`)."""
-    from der_ros.bag.episodes import scan_bag
-
     reader = BagReader(path)
     scan = scan_bag(reader, namespace)
     conns = reader.topics()
@@ -126,15 +116,14 @@ def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
             "type": c.msgtype,
             "count": scan.counts.get(topic, 0),
             "qos": list(c.offered_qos),
-            "qos_text": _qos_text(c.offered_qos),
+            "qos_text": qos_text(c.offered_qos),
             "role": next((r for r, t in scan.roles.items() if t == topic), None),
         })
     eps = [e.as_dict() for e in scan.episodes]
     for e in eps:
         e["mean_speed"] = _finite(e["mean_speed"])
     n_eps = len(eps)
-    outcomes = {o: sum(1 for e in eps if e["outcome"] == o) for o in
-                ("success", "collision", "time_limit", "terminated", "incomplete")}
+    outcomes = {o: sum(1 for e in eps if e["outcome"] == o) for o in (*EPISODE_ENDS, "terminated", "incomplete")}
     finished = [e for e in eps if e["outcome"] != "incomplete"]
     return {
         "schema_version": INFO_SCHEMA_VERSION,
@@ -156,8 +145,8 @@ def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
             "episodes": n_eps,
             "finished_episodes": len(finished),
             "outcomes": outcomes,
-            "success_rate": outcomes["success"] / len(finished) if finished else None,
-            "collision_rate": outcomes["collision"] / len(finished) if finished else None,
+            "success_rate": outcomes[EPISODE_SUCCESS] / len(finished) if finished else None,
+            "collision_rate": outcomes[EPISODE_COLLISION] / len(finished) if finished else None,
             "mean_return": sum(e["return"] for e in finished) / len(finished) if finished else None,
         },
         "metrics": sorted(scan.metrics),
@@ -211,8 +200,6 @@ def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
 
 
 def _run_plot(args: argparse.Namespace) -> int:
-    from der_ros.bag.plots import plot_bags
-
     if args.label and len(args.label) != len(args.bags):
         print(f"der replay plot: {len(args.label)} --label for {len(args.bags)} bags", file=sys.stderr)
         return 2
@@ -223,16 +210,11 @@ def _run_plot(args: argparse.Namespace) -> int:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from der_ros.bag.export import build_transitions, save_transitions
-
     if args.to.suffix not in (".npz", ".parquet"):
         print(f"der replay export: --to {args.to}: expected a .npz or .parquet file name", file=sys.stderr)
         return 2
     obs_cfg = None
     if args.obs_config is not None:
-        from der_ros.configuration import load_yaml
-        from sumo_bridge.observation import ObservationConfig
-
         obs_cfg = load_yaml(args.obs_config, ObservationConfig)
     tr = build_transitions(BagReader(args.bag), obs_cfg, args.namespace)
     out = save_transitions(tr, args.to)
@@ -242,12 +224,13 @@ def _run_export(args: argparse.Namespace) -> int:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from der_ros.bag.offline_train import run_train
-
     return run_train(args)
 
 
 def _run_play(args: argparse.Namespace) -> int:
-    from der_ros.bag.play import run_play
-
+    try:
+        from der_ros.bag.play import run_play  # lazy: rclpy, which only play needs
+    except ImportError as exc:  # the reading tools work without ROS; play does not
+        print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}", file=sys.stderr)
+        return 1
     return run_play(args)

@@ -53,13 +53,23 @@ import yaml
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapFileWriter
 
-from der_ros.bag.topics import RELIABLE_VOLATILE, QosSpec, topic_by_name
+from der_ros.contract import (
+    EPISODE,
+    EPISODE_COLLISION,
+    EPISODE_EVENTS,
+    EPISODE_STATUS,
+    RELIABLE_VOLATILE,
+    QosSpec,
+    episode_values,
+    format_value,
+    parse_episode_events,
+    topic_by_name,
+    topic_spec,
+)
 
 __all__ = [
     "BagWriter",
     "BagWriterError",
-    "EPISODE_STATUS_NAME",
-    "EPISODE_EVENTS",
     "FINALIZED_KEY",
     "EPISODES_KEY",
     "EPISODES_FILE",
@@ -72,10 +82,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: DiagnosticStatus.name of an episode event (bridge contract).
-EPISODE_STATUS_NAME = "episode"
-#: DiagnosticStatus.message values of an episode event.
-EPISODE_EVENTS = ("start", "success", "collision", "time_limit")
 #: metadata.yaml custom_data key: "true" once close() ran, "false" while writing / after a kill.
 FINALIZED_KEY = "der_ros/finalized"
 #: MCAP metadata record name (written at close, key ``episodes``: JSON list) of the episode summary;
@@ -83,7 +89,7 @@ FINALIZED_KEY = "der_ros/finalized"
 EPISODES_KEY = "der_ros/episodes"
 #: Append-only JSON-lines file in the bag directory: one episode event per line, written at every flush.
 EPISODES_FILE = "episodes.jsonl"
-_DIAG_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+_DIAG_TYPE = topic_spec(EPISODE).msgtype
 _COMPRESSION = {None: CompressionType.NONE, "none": CompressionType.NONE,
                 "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
@@ -149,32 +155,10 @@ def qos_profiles_to_yaml(profiles: QosLike, topic: str = "") -> str:
 
 
 def episode_events_from_diagnostic_array(msg: Any, timestamp_ns: int) -> list[dict[str, Any]]:
-    """Episode events in a decoded ``DiagnosticArray`` (statuses named ``episode``).
-
-    Numeric values are parsed (ints stay ints); a value that does not parse stays a string.
-    """
-    events = []
-    for status in msg.status:
-        if status.name != EPISODE_STATUS_NAME:
-            continue
-        event: dict[str, Any] = {"t_ns": int(timestamp_ns), "event": str(status.message)}
-        stamp = getattr(msg, "header", None)
-        if stamp is not None:
-            event["stamp_ns"] = int(stamp.stamp.sec) * 1_000_000_000 + int(stamp.stamp.nanosec)
-        for kv in status.values:
-            event[str(kv.key)] = _parse_number(str(kv.value))
-        events.append(event)
-    return events
-
-
-def _parse_number(text: str) -> Any:
-    try:
-        return int(text)
-    except ValueError:
-        try:
-            return float(text)
-        except ValueError:
-            return text
+    """Episode events in a decoded ``DiagnosticArray`` as summary records (``t_ns`` = log time,
+    ``stamp_ns`` = header stamp, ``event``, then the event's values, numbers parsed)."""
+    return [{"t_ns": int(timestamp_ns), "event": event, "stamp_ns": stamp, **values}
+            for stamp, event, values in parse_episode_events(msg)]
 
 
 @dataclass
@@ -400,7 +384,7 @@ class BagWriter:
         f.start_ns = min(f.start_ns, ts)
         f.end_ns = max(f.end_ns, ts)
         f.bytes_estimate += len(payload) + 31
-        if t.msgtype == _DIAG_TYPE and t.name.rsplit("/", 1)[-1] == EPISODE_STATUS_NAME:
+        if t.msgtype == _DIAG_TYPE and t.name.rsplit("/", 1)[-1] == EPISODE:
             self._note_episode(payload, ts)
         self._since_flush += 1
         if (self.max_file_messages is not None and f.count >= self.max_file_messages) or (
@@ -430,7 +414,7 @@ class BagWriter:
         ret: float = 0.0,
         lane_changes: int = 0,
         mean_speed: float = 0.0,
-        topic: str = "episode",
+        topic: str = EPISODE,
         stamp_ns: int | None = None,
         extra: Mapping[str, Any] | None = None,
         hardware_id: str = "der_ros.bag",
@@ -447,15 +431,13 @@ class BagWriter:
         store = jazzy_typestore()
         diag = store.types
         stamp = int(timestamp_ns if stamp_ns is None else stamp_ns)
-        values = {"episode": int(episode), "steps": int(steps), "return": float(ret),
-                  "lane_changes": int(lane_changes), "mean_speed": float(mean_speed), **(extra or {})}
+        values = episode_values(episode, steps, ret, lane_changes, mean_speed, **(extra or {}))
         status = diag["diagnostic_msgs/msg/DiagnosticStatus"](
-            level=1 if event == "collision" else 0,  # WARN for collisions, as the bridge does
-            name=EPISODE_STATUS_NAME,
+            level=1 if event == EPISODE_COLLISION else 0,  # WARN for collisions, as the bridge does
+            name=EPISODE_STATUS,
             message=event,
             hardware_id=hardware_id,
-            values=[diag["diagnostic_msgs/msg/KeyValue"](key=k, value=repr(v) if isinstance(v, float) else str(v))
-                    for k, v in values.items()],
+            values=[diag["diagnostic_msgs/msg/KeyValue"](key=k, value=format_value(v)) for k, v in values.items()],
         )
         header = diag["std_msgs/msg/Header"](
             stamp=diag["builtin_interfaces/msg/Time"](sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000),

@@ -29,8 +29,8 @@ from typing import Any
 
 import yaml
 
-from der_ros.bag.topics import default_record_topics
 from der_ros.bag.writer import read_episode_summary
+from der_ros.contract import COMMAND, EPISODE_START, STATE, default_record_topics
 from der_ros.graph.monitor import ProgressSnapshot
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
 
@@ -140,7 +140,7 @@ def build_params(base: dict[str, Any], args: argparse.Namespace, run_dir: Path) 
         for name, value in values.items():
             put(node, name, _typed(node, name, value))
     rec = params["recorder_node"]["ros__parameters"]
-    records_state = rec.get("all_topics") or "state" in [
+    records_state = rec.get("all_topics") or STATE in [
         str(t).lstrip("/") for t in rec.get("topics", default_record_topics())]
     if records_state and "min_subscribers" not in extra.get("bridge_node", {}):
         # the bridge waits for agent + recorder: else a fast run can step before the recorder matched it
@@ -374,9 +374,9 @@ def _snapshot_from_bag(bag: Path, live: ProgressSnapshot | None) -> ProgressSnap
         log.warning("could not read the bag summary (%s); using the live counts", exc)
         return live
     snap = ProgressSnapshot(metrics=dict(live.metrics) if live is not None else {})
-    snap.steps = sum(c for name, c in counts.items() if name.rsplit("/", 1)[-1] == "lane_change_cmd")
+    snap.steps = sum(c for name, c in counts.items() if name.rsplit("/", 1)[-1] == COMMAND)
     for e in events:
-        if e.get("event") == "start":
+        if e.get("event") == EPISODE_START:
             continue
         snap.episodes += 1
         if e.get("event") in snap.outcomes:

@@ -42,10 +42,27 @@ from rclpy.node import Node
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 
+from der_ros.agent.config import DQNConfig
+from der_ros.agent.online import OnlineLearner
 from der_ros.configuration import param
+from der_ros.contract import (
+    COMMAND,
+    EPISODE,
+    EPISODE_START,
+    METRICS,
+    REWARD,
+    STATE,
+    cloud_to_points,
+    header_ns,
+    parse_episode_events,
+    parse_reward,
+)
+from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
+from der_ros.replay.config import ReplayConfig
+from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, empty_points, encode_observation
 
 __all__ = ["AgentNodeConfig", "AgentNode", "MUTABLE", "parameter_sections", "main"]
 
@@ -81,10 +98,6 @@ MUTABLE = frozenset({"replay.lam", "agent.lr", "checkpoint_every", "metrics_ever
 
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
-    from der_ros.agent.config import DQNConfig
-    from der_ros.replay.config import ReplayConfig
-    from sumo_bridge.observation import ObservationConfig
-
     return {"": AgentNodeConfig(), "agent": DQNConfig(), "replay": ReplayConfig(), "observation": ObservationConfig()}
 
 
@@ -93,11 +106,9 @@ class AgentNode(Node):
 
     def __init__(self) -> None:
         super().__init__("agent_node")
-        import torch
+        import torch  # lazy: torch (and the learner built on it) cost a second to import
 
         from der_ros.agent.dqn import DQNAgent
-        from der_ros.agent.online import OnlineLearner
-        from sumo_bridge.observation import empty_points, encode_observation
 
         self.finished = False
         #: after SIGINT/SIGTERM, handle the messages already queued for this long before the final save
@@ -131,19 +142,16 @@ class AgentNode(Node):
                                      step_ns=step_ns)
         self.learner.set_paused(self.cfg.evaluate)
         self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"
-        self.bad_messages: dict[str, int] = {"state": 0, "reward": 0, "episode": 0}
+        self.bad_messages: dict[str, int] = {STATE: 0, REWARD: 0, EPISODE: 0}
         self._learn_calls = 0
         self._last_saved_step = self.agent.steps
         self._last_metrics: dict[str, float] = {}
 
-        from der_ros.nodes.bridge_node import qos_profiles
-
-        q = qos_profiles()
-        self.pub_cmd = self.create_publisher(Joy, "lane_change_cmd", q["lane_change_cmd"])
-        self.pub_metrics = self.create_publisher(DiagnosticArray, "agent/metrics", q["agent/metrics"])
-        self.create_subscription(PointCloud2, "state", self._on_state, q["state"])
-        self.create_subscription(Vector3Stamped, "reward", self._on_reward, q["reward"])
-        self.create_subscription(DiagnosticArray, "episode", self._on_episode, q["episode"])
+        self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
+        self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
+        self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE))
+        self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD))
+        self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))
         self.create_service(Trigger, "agent/save_checkpoint", self._srv_save)
         self.create_service(SetBool, "agent/set_paused", self._srv_pause)
         self.get_logger().info(
@@ -182,24 +190,22 @@ class AgentNode(Node):
 
     def _on_state(self, msg: PointCloud2) -> None:
         try:
-            points = mc.cloud_to_points(msg)
-            stamp = mc.time_to_ns(msg.header.stamp)
-            decisions = self.learner.on_state(stamp, points)
+            points = cloud_to_points(msg, POINT_FIELDS)
+            decisions = self.learner.on_state(header_ns(msg), points)
         except ValueError as exc:
-            self._reject("state", exc)
+            self._reject(STATE, exc)
             return
         self._handle(decisions)
 
     def _on_reward(self, msg: Vector3Stamped) -> None:
         try:
-            stamp, reward, terminated, truncated = mc.parse_reward(msg)
-            applied = mc.parse_applied_action(msg)
-            if applied is not None and not 0 <= applied < self.cfg.n_actions:
-                raise ValueError(f"reward applied_action = {applied}, expected 0..{self.cfg.n_actions - 1}")
+            r = parse_reward(msg)
+            if r.applied_action is not None and not 0 <= r.applied_action < self.cfg.n_actions:
+                raise ValueError(f"reward applied_action = {r.applied_action}, expected 0..{self.cfg.n_actions - 1}")
         except ValueError as exc:
-            self._reject("reward", exc)
+            self._reject(REWARD, exc)
             return
-        self._handle(self.learner.on_reward(stamp, reward, terminated, truncated, applied))
+        self._handle(self.learner.on_reward(r.stamp_ns, r.reward, r.terminated, r.truncated, r.applied_action))
 
     def _handle(self, decisions: list[Any]) -> None:
         if not decisions:
@@ -224,12 +230,12 @@ class AgentNode(Node):
 
     def _on_episode(self, msg: DiagnosticArray) -> None:
         try:
-            events = mc.parse_episode_events(msg)
+            events = parse_episode_events(msg)
         except ValueError as exc:
-            self._reject("episode", exc)
+            self._reject(EPISODE, exc)
             return
         for stamp, event, values in events:
-            if event == "start":
+            if event == EPISODE_START:
                 continue
             self.get_logger().info(f"episode {values.get('episode')} ended: {event} {values}")
             metrics = {f"episode/{event}": 1.0}
