@@ -371,7 +371,7 @@ def _set_numba(buf, flag: bool) -> None:
     tree.use_numba = flag
 
 
-@pytest.mark.skipif(not __import__("der_ros.replay._kernels", fromlist=["x"]).HAVE_NUMBA,
+@pytest.mark.skipif(not __import__("der_ros.replay._numba", fromlist=["x"]).HAVE_NUMBA,
                     reason="numba not installed: only the numpy kernels exist")
 @pytest.mark.parametrize("kind", ["per", "der"])
 @pytest.mark.parametrize("eq3_sum", ["h2", "batch"])

@@ -5,10 +5,10 @@
 returns :class:`Batch` tuples. ``load_replay(path)`` restores one saved with ``save``.
 """
 
-from der_ros.replay.base import Batch, ReplayBuffer, load_replay
+from der_ros.replay.base import Batch, ReplayBuffer
 from der_ros.replay.config import ReplayConfig
 from der_ros.replay.double_replay import DoubleReplay
-from der_ros.replay.factory import make_replay
+from der_ros.replay.factory import REPLAY_KINDS, load_replay, make_replay
 from der_ros.replay.prioritized import PrioritizedReplay
 from der_ros.replay.storage import ReplayMemoryError, RingStorage, storage_bytes
 from der_ros.replay.sum_tree import SumTree
@@ -27,4 +27,5 @@ __all__ = [
     "storage_bytes",
     "make_replay",
     "load_replay",
+    "REPLAY_KINDS",
 ]
