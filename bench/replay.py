@@ -35,7 +35,10 @@ os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # TorchRL logs storage set
 
 import numpy as np  # noqa: E402
 
-from der_ros.replay import DoubleReplay, PrioritizedReplay, ReplayConfig, UniformReplay  # noqa: E402
+from der_ros.replay.config import ReplayConfig  # noqa: E402
+from der_ros.replay.double_replay import DoubleReplay  # noqa: E402
+from der_ros.replay.prioritized import PrioritizedReplay  # noqa: E402
+from der_ros.replay.uniform import UniformReplay  # noqa: E402
 
 N1 = 50_000
 B = 128

@@ -38,8 +38,7 @@ def reference_episodes(max_steps: int, overrides: dict) -> list[tuple[str, int, 
 
     from der_ros.agent.config import DQNConfig
     from der_ros.agent.dqn import DQNAgent
-    from der_ros.configuration import from_dict
-    from der_ros.nodes.params import unflatten
+    from der_ros.configuration import from_dict, unflatten_names
     from der_ros.replay.config import ReplayConfig
     from sumo_bridge.lane_change_env import LaneChangeEnv
     from sumo_bridge.scenario import ScenarioConfig
@@ -50,7 +49,7 @@ def reference_episodes(max_steps: int, overrides: dict) -> list[tuple[str, int, 
     agent_values = {**doc["agent_node"]["ros__parameters"], **overrides}
 
     def section(values: dict, prefix: str, cls: type) -> object:
-        return from_dict(cls, unflatten(prefix, {k: v for k, v in values.items() if k.startswith(prefix + ".")}))
+        return from_dict(cls, unflatten_names(values, prefix))
 
     env = LaneChangeEnv(section(bridge, "scenario", ScenarioConfig))
     try:

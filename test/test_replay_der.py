@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from der_ros.replay import DoubleReplay, ReplayConfig, make_replay
-from der_ros.replay.double_replay import h2_split
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.double_replay import DoubleReplay, h2_split
+from der_ros.replay.factory import make_replay
 
 P_MIN = 1e-3
 

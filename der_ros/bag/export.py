@@ -39,7 +39,7 @@ import yaml
 
 from der_ros.bag.episodes import iter_steps, resolve_topics
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.configuration import from_dict
+from der_ros.configuration import flatten_names, from_dict, unflatten_names
 from der_ros.contract import REWARD, STATE
 from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, encode_observation
 
@@ -102,9 +102,9 @@ def observation_config_of(reader: BagReader) -> Any | None:
         return None
     try:
         params = yaml.safe_load(params_path.read_text()) or {}
-        for node, prefix in (("agent_node", "observation."), ("bridge_node", "scenario.observation.")):
-            values = ((params.get(node) or {}).get("ros__parameters") or {})
-            found = {k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix) and "." not in k[len(prefix):]}
+        for node, prefix in (("agent_node", "observation"), ("bridge_node", "scenario.observation")):
+            values = flatten_names((params.get(node) or {}).get("ros__parameters") or {})
+            found = unflatten_names(values, prefix)
             if found:
                 log.info("%s: observation config from %s (%s)", reader.path, params_path, node)
                 return from_dict(ObservationConfig, found, source=str(params_path))

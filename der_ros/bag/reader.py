@@ -542,6 +542,20 @@ class BagReader:
                     out[conn.topic] = out.get(conn.topic, 0) + n
         return out
 
+    def topic_counts(self) -> dict[str, int] | None:
+        """Messages per topic without reading the messages: the MCAP summaries of a finalised bag,
+        else the counts of its ``metadata.yaml`` (for a killed recorder: what was flushed), else None."""
+        counts = self.summary_counts
+        if counts is not None:
+            return counts
+        entries = (self.metadata or {}).get("topics_with_message_count")
+        if not entries:
+            return None
+        try:
+            return {str(e["topic_metadata"]["name"]): int(e["message_count"]) for e in entries}
+        except (KeyError, TypeError, ValueError):
+            return None
+
     def connections(self) -> list[Connection]:
         """All connections of the bag (one per topic per file). Cut files are scanned once."""
         if all(s.complete and s.connections for s in self._summaries.values()):

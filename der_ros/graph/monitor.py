@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -19,7 +18,6 @@ from sensor_msgs.msg import Joy
 from der_ros.contract import (
     COMMAND,
     EPISODE,
-    EPISODE_ENDS,
     EPISODE_START,
     METRICS,
     QosSpec,
@@ -28,42 +26,10 @@ from der_ros.contract import (
     topic_spec,
 )
 from der_ros.contract_ros import qos_profile
+from der_ros.graph.progress import ProgressSnapshot
 from der_ros.nodes.spin import BackgroundNode
 
-__all__ = ["GraphMonitor", "ProgressSnapshot"]
-
-
-@dataclass
-class ProgressSnapshot:
-    """What the runner shows: counts since the monitor started."""
-
-    steps: int = 0
-    episodes: int = 0  # finished episodes
-    returns: list[float] = field(default_factory=list)
-    outcomes: dict[str, int] = field(default_factory=lambda: dict.fromkeys(EPISODE_ENDS, 0))
-    lane_changes: int = 0
-    metrics: dict[str, float] = field(default_factory=dict)
-
-    def mean_return(self, window: int = 10) -> float | None:
-        tail = self.returns[-window:]
-        return sum(tail) / len(tail) if tail else None
-
-    def line(self, window: int = 10) -> str:
-        """One-line status text."""
-        avg = self.mean_return(window)
-        parts = [
-            f"episodes {self.episodes}",
-            f"return avg({window}) {avg:+.1f}" if avg is not None else "return avg -",
-            f"lane changes {self.lane_changes}",
-            *(f"{event.replace('_', ' ')} {n}" for event, n in self.outcomes.items()),
-        ]
-        eps = self.metrics.get("charts/epsilon")
-        if eps is not None:
-            parts.append(f"eps {eps:.2f}")
-        h2 = self.metrics.get("replay/h2_fraction")
-        if h2 is not None:
-            parts.append(f"H2 frac {h2:.2f}")
-        return " | ".join(parts)
+__all__ = ["GraphMonitor"]
 
 
 class GraphMonitor(BackgroundNode):

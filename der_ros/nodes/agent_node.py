@@ -18,7 +18,7 @@ checkpoints to ``checkpoint_out`` every ``checkpoint_every`` learner steps, on t
 ``agent/set_paused`` (std_srvs/SetBool) switches evaluation mode: greedy actions, no storing,
 no learning.
 
-Parameters: the node's own (:class:`AgentNodeConfig`, top-level names), ``agent.*``
+Parameters (:mod:`der_ros.nodes.node_configs`): the node's own (:class:`AgentNodeConfig`, top-level names), ``agent.*``
 (:class:`~der_ros.agent.config.DQNConfig`), ``replay.*``
 (:class:`~der_ros.replay.config.ReplayConfig`) and ``observation.*``
 (:class:`~sumo_bridge.observation.ObservationConfig`, must equal the bridge's
@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,9 +41,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 
-from der_ros.agent.config import DQNConfig
 from der_ros.agent.online import OnlineLearner
-from der_ros.configuration import param
 from der_ros.contract import (
     COMMAND,
     EPISODE,
@@ -59,46 +56,20 @@ from der_ros.contract import (
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes import node_configs
+from der_ros.nodes.node_configs import AGENT_MUTABLE, AgentNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
-from der_ros.replay.config import ReplayConfig
-from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, empty_points, encode_observation
+from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observation
 
-__all__ = ["AgentNodeConfig", "AgentNode", "MUTABLE", "parameter_sections", "main"]
+__all__ = ["AgentNode", "parameter_sections", "main"]
 
 _NS = 1_000_000_000
 
 
-@dataclass
-class AgentNodeConfig:
-    """Parameters of the agent node itself (top-level ROS parameter names)."""
-
-    seed: int = param(0, "seed of the learner (network init, exploration, replay sampling)", low=0)
-    device: str = param("cpu", "torch device: 'cpu', 'cuda', 'cuda:N' or 'auto'")
-    n_actions: int = param(3, "number of actions (0 keep lane, 1 left, 2 right)", low=2)
-    checkpoint_in: str = param("", "checkpoint to load at start (empty = start from scratch)")
-    checkpoint_out: str = param("", "checkpoint file written periodically and on shutdown (empty = never)")
-    checkpoint_every: int = param(5000, "save every this many environment steps (0 = only on shutdown / service)",
-                                  low=0)
-    metrics_every: int = param(100, "publish agent/metrics every this many gradient-step calls (and at every "
-                               "episode end)", low=1)
-    evaluate: bool = param(False, "start paused: evaluation mode (greedy actions, no learning)")
-    step_seconds: float = param(
-        0.0, "the bridge's step in seconds, to detect steps lost on every topic (0 = do not check)", low=0.0)
-    max_buffered: int = param(64, "incomplete state/reward stamps kept while waiting for the other half", low=1)
-    torch_threads: int = param(1, "torch intra-op threads (1 keeps the node from competing with SUMO)", low=1)
-    warm_up: bool = param(
-        True, "before joining the graph, run act/observe/learn on a scratch agent so that lazy set-up (the replay's "
-        "numba kernels, torch autograd) does not stall the first real steps past the bridge's command timeout")
-
-
-#: parameters that may change while the node runs (all others are read-only)
-MUTABLE = frozenset({"replay.lam", "agent.lr", "checkpoint_every", "metrics_every", "checkpoint_out"})
-
-
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
-    return {"": AgentNodeConfig(), "agent": DQNConfig(), "replay": ReplayConfig(), "observation": ObservationConfig()}
+    return node_configs.parameter_sections("agent_node")
 
 
 class AgentNode(Node):
@@ -113,7 +84,7 @@ class AgentNode(Node):
         self.finished = False
         #: after SIGINT/SIGTERM, handle the messages already queued for this long before the final save
         self.drain_seconds = 0.3
-        self._params = ConfigParameters(self, parameter_sections(), mutable=MUTABLE, on_change=self._on_param_change)
+        self._params = ConfigParameters(self, parameter_sections(), mutable=AGENT_MUTABLE, on_change=self._on_param_change)
         self.cfg: AgentNodeConfig = self._params.get("")
         torch.set_num_threads(self.cfg.torch_threads)
         obs_cfg = self._params.get("observation")

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,7 +46,6 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 
-from der_ros.configuration import param
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -66,39 +64,17 @@ from der_ros.contract import (
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes import node_configs
+from der_ros.nodes.node_configs import BridgeNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.lockstep import CommandGate, Verdict
 from sumo_bridge.observation import field_index
-from sumo_bridge.scenario import ScenarioConfig
 
-__all__ = ["BridgeNodeConfig", "BridgeNode", "LatencyStats", "main", "parameter_sections"]
+__all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
 _NS = 1_000_000_000
-
-
-@dataclass
-class BridgeNodeConfig:
-    """Parameters of the bridge node itself (top-level ROS parameter names)."""
-
-    mode: str = param("lockstep", "stepping mode: 'lockstep' (wait for each command) or 'free_run' (timer)",
-                      choices=("lockstep", "free_run"))
-    command_timeout: float = param(
-        2.0, "lockstep: seconds to wait for the command answering a state before applying the default action "
-        "(0 = keep lane; the next reward's frame_id names the applied action, so the learner stores what was applied); "
-        "keep it above the agent's longest pause (checkpoint save)", low=0.0, low_inclusive=False)
-    real_time_factor: float = param(
-        1.0, "free_run: simulated seconds per wall-clock second", low=0.0, low_inclusive=False)
-    max_steps: int = param(0, "simulation steps before the node exits 0 (0 = unlimited)", low=0)
-    wait_for_agent: float = param(
-        30.0, "seconds to wait at start-up until state/reward have a subscriber and lane_change_cmd a publisher "
-        "(0 = start at once)", low=0.0)
-    min_subscribers: int = param(
-        1, "start-up: subscribers that state and reward must each have before the first step (der graph sets 2: "
-        "agent + recorder, so the bag starts with the first state)", low=1)
-    diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
-    map_frame: str = param("map", "frame_id of ego/odom")
 
 
 class LatencyStats:
@@ -125,7 +101,7 @@ class LatencyStats:
 
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
-    return {"": BridgeNodeConfig(), "scenario": ScenarioConfig()}
+    return node_configs.parameter_sections("bridge_node")
 
 
 class BridgeNode(Node):

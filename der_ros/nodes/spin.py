@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
+from der_ros.configuration import ConfigError
 from der_ros.nodes.orphans import stop_with_supervisor
 
 __all__ = ["BackgroundNode", "ManagedNode", "install_stop_handlers", "run_node"]
@@ -56,8 +57,6 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
-
-    from der_ros.configuration import ConfigError
 
     args = list(sys.argv if argv is None else argv)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
