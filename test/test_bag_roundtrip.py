@@ -168,6 +168,7 @@ def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pyt
         "schema_version": int, "bag": str, "name": str, "files": list, "truncated": bool, "metadata_yaml": bool,
         "metadata_stale": bool, "message_count": int, "start_ns": int, "end_ns": int, "duration_s": float,
         "topics": list, "roles": dict, "steps": int, "episodes": list, "summary": dict, "metrics": list,
+        "skipped": dict,
     }
     assert set(doc) == set(schema)
     for k, typ in schema.items():
@@ -232,14 +233,31 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     assert doc["truncated"] and doc["metadata_stale"]
     assert "truncated" in captured.err and str(cut / src.name) in captured.err
     assert 0 < doc["message_count"] < truth.n_messages
+    # a flipped byte in a chunk: that chunk is skipped, with one warning, and info reports it
     bad = tmp_path / "bad"
     bad.mkdir()
     flipped = bytearray(raw)
     flipped[len(raw) // 3] ^= 0x5A
     (bad / src.name).write_bytes(bytes(flipped))
-    assert der_main(["replay", "info", str(bad)]) == 1
+    assert der_main(["replay", "info", str(bad), "--json"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    (chunk,) = doc["skipped"]["ranges"]
+    assert doc["skipped"]["chunks"] == 1 and doc["skipped"]["messages_lost"] == chunk["messages_lost"] > 0
+    assert chunk["start"] < len(raw) // 3 < chunk["end"] and doc["skipped"]["bytes"] == chunk["end"] - chunk["start"]
+    assert doc["message_count"] == truth.n_messages - chunk["messages_lost"]
+    assert captured.err.count("skipped the damaged chunk") == 1 and f"bytes {chunk['start']}-{chunk['end']}" in captured.err
+    assert der_main(["replay", "info", str(bad)]) == 0
+    assert "DAMAGED:   1 chunk(s) skipped" in capsys.readouterr().out
+    # damage the framing of a bag without chunk index (a killed recorder's): a clean one-line error
+    worse = tmp_path / "worse"
+    worse.mkdir()
+    cut_raw = bytearray(raw[: len(raw) * 2 // 3])
+    cut_raw[8] ^= 0xFF  # the header record's opcode
+    (worse / src.name).write_bytes(bytes(cut_raw))
+    assert der_main(["replay", "info", str(worse)]) == 1
     err = capsys.readouterr().err
-    assert "error:" in err and str(bad / src.name) in err and "byte offset" in err
+    assert "error:" in err and str(worse / src.name) in err and "byte offset" in err
     assert "Traceback" not in err
 
 

@@ -269,3 +269,30 @@ def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path) -> None:
         with pytest.raises(Exception):  # noqa: B017 - any error type: the file has no footer
             list(make_reader(f).iter_messages())
     assert os.path.getsize(bag / "killed_0.mcap") > 0
+
+
+def test_recover_bag_steps_over_a_damaged_chunk(tmp_path: Path) -> None:
+    """recover_bag copies what the reader reads: a damaged chunk in the middle costs only its own
+    messages (streaming with CRC checks stops there and loses everything after it)."""
+    src = tmp_path / "src"
+    with BagWriter(src, chunk_size=2048, flush_every_messages=10_000) as w:
+        w.add_topic("/s", "std_msgs/msg/String")
+        for i in range(400):
+            w.write_message("/s", i, string(f"message {i:04d}"))
+    f = next(src.glob("*.mcap"))
+    with open(f, "rb") as fh:
+        chunks = sorted(make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    target = chunks[len(chunks) // 2]
+    raw = bytearray(f.read_bytes())
+    raw[target.chunk_start_offset + target.chunk_length - 20] ^= 0x10  # inside the chunk's records
+    f.write_bytes(bytes(raw))
+    streamed, _ = stream_messages(f)
+    assert len(streamed) < 400 // 2 + 50  # the streaming reader stops at the damaged chunk
+    with pytest.warns(UserWarning, match=rf"bytes {target.chunk_start_offset}-{target.chunk_start_offset + target.chunk_length}"):
+        copied = recover_bag(src, tmp_path / "fixed")
+    with Reader(tmp_path / "fixed") as r:
+        texts = [TS.deserialize_cdr(d, c.msgtype).data for c, _t, d in r.messages()]
+    lost = 400 - copied
+    assert 0 < lost < 60 and len(texts) == copied
+    assert texts == [f"message {i:04d}" for i in range(400) if f"message {i:04d}" in set(texts)]
+    assert texts[-1] == "message 0399"  # everything after the damaged chunk was copied

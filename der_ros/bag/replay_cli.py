@@ -8,8 +8,8 @@
 
 Everything but ``play`` is ROS-free (``rosbags`` typestore for decoding). Read errors
 (:class:`~der_ros.bag.reader.BagError`: corrupted file, missing topics) are reported as one
-line naming the file and byte offset, exit status 1; a cut bag is read up to the cut with a
-warning.
+line naming the file and byte offset, exit status 1; a cut bag is read up to the cut, and a
+damaged chunk is skipped, each with one warning (``info`` reports what was skipped).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from der_ros.bag.episodes import scan_bag
 from der_ros.bag.export import build_transitions, save_transitions
 from der_ros.bag.offline_train import add_train_arguments, run_train
 from der_ros.bag.plots import plot_bags
-from der_ros.bag.reader import BagError, BagReader, TruncatedBagWarning
+from der_ros.bag.reader import BagError, BagReader, DamagedChunk, DamagedChunkWarning, TruncatedBagWarning
 from der_ros.configuration import load_yaml
 from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
 from sumo_bridge.observation import ObservationConfig
@@ -36,7 +36,8 @@ __all__ = ["add_arguments", "run", "bag_info"]
 
 log = logging.getLogger(__name__)
 
-INFO_SCHEMA_VERSION = 1
+#: 2: added ``skipped`` (damaged chunks the reader stepped over)
+INFO_SCHEMA_VERSION = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     handlers = {"info": _run_info, "plot": _run_plot, "export": _run_export, "train": _run_train, "play": _run_play}
     with warnings.catch_warnings():
         warnings.simplefilter("always", TruncatedBagWarning)
+        warnings.simplefilter("always", DamagedChunkWarning)
         warnings.showwarning = _show_warning
         try:
             return handlers[args.replay_command](args)
@@ -150,6 +152,19 @@ def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
             "mean_return": sum(e["return"] for e in finished) / len(finished) if finished else None,
         },
         "metrics": sorted(scan.metrics),
+        "skipped": skipped_summary(reader.damaged),
+    }
+
+
+def skipped_summary(damaged: list[DamagedChunk]) -> dict[str, Any]:
+    """What a damaged bag cost: chunks skipped, their bytes, the messages they held (None if any
+    count is unknown), and each chunk's byte range and reason."""
+    lost = [d.messages_lost for d in damaged]
+    return {
+        "chunks": len(damaged),
+        "bytes": sum(d.end - d.start for d in damaged),
+        "messages_lost": None if any(n is None for n in lost) else sum(n for n in lost if n is not None),
+        "ranges": [d.as_dict() for d in damaged],
     }
 
 
@@ -165,6 +180,11 @@ def _run_info(args: argparse.Namespace) -> int:
     elif info["metadata_stale"]:
         print("metadata:  metadata.yaml counts differ from the file (stale); showing the counts read")
     print(f"messages:  {info['message_count']}")
+    skipped = info["skipped"]
+    if skipped["chunks"]:
+        lost = "an unknown number of" if skipped["messages_lost"] is None else skipped["messages_lost"]
+        ranges = ", ".join(f"{Path(r['file']).name} bytes {r['start']}-{r['end']}" for r in skipped["ranges"])
+        print(f"DAMAGED:   {skipped['chunks']} chunk(s) skipped ({ranges}): {lost} messages lost")
     print(f"duration:  {info['duration_s']:.3f} s")
     rows = [(t["name"], t["type"], str(t["count"]), t["qos_text"]) for t in info["topics"]]
     _table(("topic", "type", "count", "QoS"), rows)

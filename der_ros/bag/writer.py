@@ -18,7 +18,7 @@ Why this design
   (checked on every write and by :meth:`maybe_flush`, which the recorder calls from a timer
   so a quiet topic does not hold its last messages in memory). A SIGKILL therefore loses at
   most the messages after the last flush. Such a bag has no MCAP footer/summary: streaming
-  readers (``mcap.stream_reader.StreamReader``) read it up to the cut, and its
+  readers (``mcap.stream_reader.StreamReader``, our ``BagReader``) read it up to the cut, and its
   ``metadata.yaml`` already matches the flushed part (``custom_data: der_ros/finalized:
   'false'``); :func:`recover_bag` copies it into a finalised bag (like ``ros2 bag reindex``).
   :meth:`close` writes the footer, summary and statistics, a ``rosbag2`` MCAP metadata record,
@@ -53,6 +53,7 @@ import yaml
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapFileWriter
 
+from der_ros.bag.reader import BagReader
 from der_ros.contract import (
     EPISODE,
     EPISODE_COLLISION,
@@ -597,53 +598,33 @@ def read_episode_summary(bag: str | os.PathLike[str]) -> list[dict[str, Any]]:
 
 
 def recover_bag(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
-    """Copy a killed (unfinalised) bag into a new, finalised one; returns the messages copied.
+    """Copy a killed (unfinalised) or damaged bag into a new, finalised one; returns the messages copied.
 
-    Our ``ros2 bag reindex``: every ``.mcap`` of ``src`` is streamed (CRC-checked) up to the cut
-    left by the kill, and the complete records are written to ``dst`` with the same topics, message
-    definitions, offered QoS, stamps and order. ``src`` is not modified. Works on finalised bags too.
+    Our ``ros2 bag reindex``: the messages :class:`~der_ros.bag.reader.BagReader` streams from
+    ``src`` -- every complete record up to the cut a kill left, minus any damaged chunk (each
+    skipped with a warning) -- are written to ``dst`` with the same topics, message definitions,
+    offered QoS, stamps and order. ``src`` is not modified. Works on finalised bags too.
     """
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-
     src = Path(src)
+    reader = BagReader(src)
     hashes: dict[str, str] = {}
     custom: dict[str, str] = {}
-    meta_path = src / "metadata.yaml"
-    if meta_path.is_file():
-        info = (yaml.safe_load(meta_path.read_text()) or {}).get("rosbag2_bagfile_information", {})
-        for t in info.get("topics_with_message_count", []):
-            tm = t.get("topic_metadata", {})
-            hashes[tm.get("name", "")] = tm.get("type_description_hash", "")
-        custom = {k: v for k, v in (info.get("custom_data") or {}).items() if not k.startswith("der_ros/")}
-    files = sorted(src.glob("*.mcap"), key=lambda f: (len(f.name), f.name))
-    if not files:
-        raise BagWriterError(f"{src}: no .mcap file to recover")
+    for t in (reader.metadata or {}).get("topics_with_message_count") or []:
+        tm = t.get("topic_metadata") or {}
+        hashes[str(tm.get("name", ""))] = str(tm.get("type_description_hash", "") or "")
+    custom = {k: v for k, v in ((reader.metadata or {}).get("custom_data") or {}).items() if not k.startswith("der_ros/")}
+    store = jazzy_typestore()
     copied = 0
     with BagWriter(dst, custom_data={**custom, "der_ros/recovered_from": str(src)}) as out:
-        for f in files:
-            schemas: dict[int, Schema] = {}
-            channels: dict[int, Channel] = {}
-            with open(f, "rb") as fh:
-                try:
-                    for rec in StreamReader(fh, validate_crcs=True).records:
-                        if isinstance(rec, Schema):
-                            schemas[rec.id] = rec
-                        elif isinstance(rec, Channel):
-                            channels[rec.id] = rec
-                        elif isinstance(rec, Message):
-                            ch = channels[rec.channel_id]
-                            if not out.has_topic(ch.topic):
-                                sc = schemas[ch.schema_id]
-                                store = jazzy_typestore()
-                                digest = hashes.get(ch.topic) or (
-                                    store.hash_rihs01(sc.name) if sc.name in store.fielddefs else "")
-                                out.add_topic(ch.topic, sc.name, ch.metadata.get("offered_qos_profiles", ""),
-                                              msgdef=sc.data.decode(), rihs01=digest)
-                            out.write(ch.topic, rec.log_time, rec.data, publish_time_ns=rec.publish_time)
-                            copied += 1
-                except Exception as exc:  # the cut: a truncated record, or a chunk whose CRC does not match
-                    log.info("%s: stopped reading at the cut (%s: %s)", f.name, type(exc).__name__, exc)
+        for msg in reader.messages():
+            conn = msg.connection
+            if not out.has_topic(conn.topic):
+                own_def = conn.schema if conn.schema and conn.schema_encoding == "ros2msg" else None
+                digest = hashes.get(conn.topic) or (store.hash_rihs01(conn.msgtype) if conn.msgtype in store.fielddefs else "")
+                out.add_topic(conn.topic, conn.msgtype, conn.metadata.get("offered_qos_profiles", ""),
+                              msgdef=own_def, rihs01=digest if own_def is not None else None)
+            out.write(conn.topic, msg.log_time, msg.data, publish_time_ns=msg.publish_time)
+            copied += 1
     return copied
 
 
