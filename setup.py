@@ -56,7 +56,7 @@ setup(
     entry_points={
         "console_scripts": [
             "der = der_ros.cli:main",
-            "bridge_node = sumo_bridge.bridge_node:main",
+            "bridge_node = der_ros.nodes.bridge_node:main",
             "agent_node = der_ros.nodes.agent_node:main",
             "recorder_node = der_ros.nodes.recorder_node:main",
         ],

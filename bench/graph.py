@@ -44,14 +44,13 @@ def _agent_config(overrides: dict) -> tuple:
     import yaml
 
     from der_ros.agent.config import DQNConfig
-    from der_ros.configuration import from_dict
-    from der_ros.nodes.params import unflatten
+    from der_ros.configuration import from_dict, unflatten_names
     from der_ros.replay.config import ReplayConfig
 
     values = dict(yaml.safe_load(PARAMS_FILE.read_text())["agent_node"]["ros__parameters"])
     values.update(overrides)
-    agent = from_dict(DQNConfig, unflatten("agent", {k: v for k, v in values.items() if k.startswith("agent.")}))
-    replay = from_dict(ReplayConfig, unflatten("replay", {k: v for k, v in values.items() if k.startswith("replay.")}))
+    agent = from_dict(DQNConfig, unflatten_names(values, "agent"))
+    replay = from_dict(ReplayConfig, unflatten_names(values, "replay"))
     return agent, replay, int(values.get("seed", 0))
 
 
@@ -59,13 +58,12 @@ def _scenario_config() -> object:
     """The bridge's ScenarioConfig from the params file (the graph runs exactly this scenario)."""
     import yaml
 
-    from der_ros.configuration import from_dict
-    from der_ros.nodes.params import unflatten
+    from der_ros.configuration import from_dict, unflatten_names
     from sumo_bridge.scenario import ScenarioConfig
 
     values = yaml.safe_load(PARAMS_FILE.read_text())["bridge_node"]["ros__parameters"]
     scenario = {k: v for k, v in values.items() if k.startswith("scenario.")}
-    return from_dict(ScenarioConfig, unflatten("scenario", scenario))
+    return from_dict(ScenarioConfig, unflatten_names(scenario, "scenario"))
 
 
 def run_inprocess(steps: int, overrides: dict) -> tuple[float, int]:
@@ -132,7 +130,7 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path) 
         procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + _param_args(agent_params),
                                       env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
         bridge = subprocess.Popen(
-            base + ["sumo_bridge.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
+            base + ["der_ros.nodes.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
             env=env, stdout=bridge_log, stderr=subprocess.STDOUT, start_new_session=True)
         procs.append(bridge)
         code = bridge.wait(timeout=60 + steps / 20)

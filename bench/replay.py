@@ -35,7 +35,10 @@ os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # TorchRL logs storage set
 
 import numpy as np  # noqa: E402
 
-from der_ros.replay import DoubleReplay, PrioritizedReplay, UniformReplay  # noqa: E402
+from der_ros.replay.config import ReplayConfig  # noqa: E402
+from der_ros.replay.double_replay import DoubleReplay  # noqa: E402
+from der_ros.replay.prioritized import PrioritizedReplay  # noqa: E402
+from der_ros.replay.uniform import UniformReplay  # noqa: E402
 
 N1 = 50_000
 B = 128
@@ -116,7 +119,8 @@ def ours_per(data):
 
 
 def ours_der(data, promote_mode: str = "copy"):
-    buf = DoubleReplay(N1, N2, (OBS,), np.float32, lam=LAM, h2_min_size=B, promote_mode=promote_mode, seed=0)
+    cfg = ReplayConfig(kind="der", capacity=N1, h2_capacity=N2, lam=LAM, h2_min_size=B, promote_mode=promote_mode)
+    buf = DoubleReplay(cfg, (OBS,), np.float32, seed=0)
     _fill(buf, data)
     td = td_source()
     n1 = B - int(np.floor(LAM * B + 0.5))

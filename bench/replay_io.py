@@ -7,12 +7,17 @@ Writes (once, cached) a rosbag2 MCAP bag of ``--messages`` small messages with t
 * ``ours``: ``BagReader(bag).messages()`` + ``Message.decode()`` on every message;
 * ``mcap``: ``mcap.reader.make_reader(f, decoder_factories=[mcap_ros2 DecoderFactory()])``
   + ``iter_decoded_messages()`` (what a plain-mcap user would write);
-* the same two without decoding (``*_raw``: raw CDR bytes only), for reference.
+* the same two without decoding (``*_raw``: raw CDR bytes only), for reference;
+* ``streamreader``: the reader der_ros would have if it were built on ``mcap``'s
+  ``StreamReader`` (``emit_chunks=True`` + ``breakup_chunk`` per chunk, so a damaged chunk could
+  be skipped), decoding with the same rosbags decoders as ours: the measurement behind keeping
+  our own record layer (``der_ros/bag/mcap_records.py``; kept if StreamReader loses > 20 %).
 
 Our reader runs once alone (peak RSS, ``ru_maxrss``, read right after it), then both run
 ``--repeat`` times interleaved; the best time of each counts (the load of a shared machine
 drifts, interleaving exposes both to the same drift). Ends with one JSON
-line: ours_msgs_per_s, mcap_msgs_per_s, ratio (ours / mcap, target >= 0.8), the raw rates,
+line: ours_msgs_per_s, mcap_msgs_per_s, ratio (ours / mcap, target >= 0.8), streamreader_msgs_per_s and
+streamreader_vs_ours (a drop of more than 20 % keeps our record layer), the raw rates,
 peak_rss_mb (after our reader: memory flat in bag size), bag_mb, messages.
 
     .venv/bin/python bench/replay_io.py [--messages 1000000] [--dir /tmp/der_ros_bench]
@@ -113,6 +118,31 @@ def read_mcap(path: Path) -> int:
     return n
 
 
+def read_streamreader(path: Path) -> int:
+    from mcap.records import Channel, Chunk, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from der_ros.bag.reader import Connection, _Types  # our decoders, so only the record layer differs
+
+    types = _Types()
+    n = 0
+    for f in sorted(path.glob("*.mcap")):
+        schemas, decoders = {}, {}
+        with open(f, "rb") as fh:
+            for rec in StreamReader(fh, emit_chunks=True).records:
+                for r in breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else (rec,):
+                    if isinstance(r, Message):
+                        decoders[r.channel_id](r.data)
+                        n += 1
+                    elif isinstance(r, Schema):
+                        schemas[r.id] = r
+                    elif isinstance(r, Channel):
+                        sc = schemas[r.schema_id]
+                        decoders[r.id] = types.decoder(Connection(r.id, r.topic, sc.name, r.message_encoding,
+                                                                  sc.encoding, sc.data.decode(), dict(r.metadata), f))
+    return n
+
+
 def best_of(fn, path: Path, repeat: int) -> tuple[float, int]:
     best = float("inf")
     count = 0
@@ -143,16 +173,19 @@ def main(argv: list[str] | None = None) -> int:
     t_ours, n_ours = best_of(read_ours, bag, 1)
     rss_ours = _rss_mb()
     # then interleaved (the machine's load drifts; best of each over the same period)
-    t_mcap = t_ours_raw = t_mcap_raw = float("inf")
-    n_mcap = 0
+    t_mcap = t_ours_raw = t_mcap_raw = t_stream = float("inf")
+    n_mcap = n_stream = 0
     for _ in range(args.repeat):
         t, n_mcap = best_of(read_mcap, bag, 1)
         t_mcap = min(t_mcap, t)
+        t, n_stream = best_of(read_streamreader, bag, 1)
+        t_stream = min(t_stream, t)
         t_ours = min(t_ours, best_of(read_ours, bag, 1)[0])
         t_ours_raw = min(t_ours_raw, best_of(read_ours_raw, bag, 1)[0])
         t_mcap_raw = min(t_mcap_raw, best_of(read_mcap_raw, bag, 1)[0])
-    if n_ours != n_mcap or n_ours != args.messages:
-        print(f"message counts differ: ours {n_ours}, mcap {n_mcap}, expected {args.messages}", file=sys.stderr)
+    if not n_ours == n_mcap == n_stream == args.messages:
+        print(f"message counts differ: ours {n_ours}, mcap {n_mcap}, streamreader {n_stream}, expected {args.messages}",
+              file=sys.stderr)
         return 1
     ours = n_ours / t_ours
     plain = n_mcap / t_mcap
@@ -166,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
                 "ours_msgs_per_s": round(ours),
                 "mcap_msgs_per_s": round(plain),
                 "ratio": round(ours / plain, 3),
+                "streamreader_msgs_per_s": round(n_stream / t_stream),
+                "streamreader_vs_ours": round(n_stream / t_stream / ours, 3),
                 "ours_raw_msgs_per_s": round(n_ours / t_ours_raw),
                 "mcap_raw_msgs_per_s": round(n_ours / t_mcap_raw),
                 "peak_rss_mb": round(rss_ours, 1),

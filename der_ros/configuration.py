@@ -44,6 +44,8 @@ __all__ = [
     "field_specs",
     "add_dataclass_arguments",
     "apply_overrides",
+    "flatten_names",
+    "unflatten_names",
 ]
 
 
@@ -345,3 +347,36 @@ def apply_overrides(obj: T, overrides: dict[str, Any], source: str = "command li
             raise ConfigError(f"{source}: unknown key {k!r}")
         data[k] = v
     return from_dict(type(obj), data, source=source)
+
+
+def flatten_names(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mappings as dotted names: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (``prefix.a.b`` with a prefix).
+
+    The one spelling of config paths shared by ROS parameters (``agent.lr``,
+    ``scenario.observation.speed_scale``), params files and ``--set``/``-p`` overrides.
+    """
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, Mapping):
+            out.update(flatten_names(value, name))
+        else:
+            out[name] = value
+    return out
+
+
+def unflatten_names(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Inverse of :func:`flatten_names`: dotted names -> nested mappings. With ``prefix``, only the
+    names under it are taken, without the prefix (``{"agent.lr": 1e-3, "seed": 1}``, ``"agent"``
+    -> ``{"lr": 1e-3}``)."""
+    out: dict[str, Any] = {}
+    head = prefix + "." if prefix else ""
+    for name, value in values.items():
+        if not name.startswith(head):
+            continue
+        parts = name[len(head):].split(".")
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out

@@ -1,6 +1,7 @@
-"""sumo_bridge: the SUMO lane-change scenario (networks, libsumo environment) and its ROS 2 bridge node.
+"""sumo_bridge: the SUMO lane-change scenario as a gymnasium package (networks, libsumo environment).
 
-Everything but ``bridge_node`` is ROS-free.
+ROS-free, like sumo-rl: the ROS 2 node that drives it is :mod:`der_ros.nodes.bridge_node`;
+:mod:`sumo_bridge.lockstep` is that node's ROS-free command gate.
 """
 
 import gymnasium as _gym

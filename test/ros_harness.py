@@ -9,7 +9,7 @@ failure (pytest shows a failing test's captured teardown output), and every proc
 Usage (fixtures ``ros_graph`` / ``ros_domain`` are exported for ``from ros_harness import *``)::
 
     def test_x(ros_graph):
-        bridge = ros_graph.start_node("sumo_bridge.bridge_node", params={"max_steps": 50})
+        bridge = ros_graph.start_node("der_ros.nodes.bridge_node", params={"max_steps": 50})
         states = ros_graph.probe.collect("state", PointCloud2)
         wait_for(lambda: len(states) >= 3, timeout=20, what="three states", procs=[bridge])
 

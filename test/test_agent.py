@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from der_ros.agent import AtariCNN, DQNAgent, DQNConfig, FlatAdam, LinearSchedule, MLPQNetwork, flatten_parameters
+from der_ros.agent.config import DQNConfig
+from der_ros.agent.dqn import DQNAgent
+from der_ros.agent.networks import AtariCNN, MLPQNetwork, flatten_parameters
+from der_ros.agent.optim import FlatAdam
+from der_ros.agent.schedules import LinearSchedule
 from der_ros.replay.base import Batch
 from der_ros.replay.config import ReplayConfig
 

@@ -1,10 +1,10 @@
 """Helpers shared by the bag tool tests (no tests here): write bags the way the graph does.
 
 ``record_env_bag`` drives the real LaneChangeEnv and writes state / reward / command /
-episode / clock messages exactly as bridge_node publishes them (docs/architecture.md: reward
-then state at stamp t_k = k * step, the command stamped t_k, episode start/end events, the
-next episode's first state at the next stamp), returning the ground truth the environment
-produced, transition by transition.
+episode / clock messages exactly as bridge_node publishes them (der_ros.contract: reward
+(naming the applied action) then state at stamp t_k = k * step, the command stamped t_k,
+episode start/end events, the next episode's first state at the next stamp), returning the
+ground truth the environment produced, transition by transition.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from der_ros.bag.writer import BagWriter, jazzy_typestore
+from der_ros.contract import applied_action_frame
 
 TS = jazzy_typestore()
 T = TS.types
@@ -33,9 +34,9 @@ def msg_clock(ns: int) -> Any:
     return T["rosgraph_msgs/msg/Clock"](clock=_time(ns))
 
 
-def msg_reward(ns: int, r: float, terminated: bool, truncated: bool) -> Any:
+def msg_reward(ns: int, r: float, terminated: bool, truncated: bool, applied: int | None = None) -> Any:
     vec = T["geometry_msgs/msg/Vector3"](x=float(r), y=1.0 if terminated else 0.0, z=1.0 if truncated else 0.0)
-    return T["geometry_msgs/msg/Vector3Stamped"](header=_header(ns), vector=vec)
+    return T["geometry_msgs/msg/Vector3Stamped"](header=_header(ns, applied_action_frame(applied)), vector=vec)
 
 
 def msg_state(ns: int, points: np.ndarray, fields: tuple[str, ...]) -> Any:
@@ -109,12 +110,12 @@ class GraphBagWriter:
         self.n += 1
 
     def step(self, points: np.ndarray, reward: float, terminated: bool, truncated: bool,
-             start_episode: int | None = None) -> int:
+             start_episode: int | None = None, applied: int | None = None) -> int:
         stamp = self.k * self.step_ns
         if start_episode is not None:
             self._write("/episode", stamp, 0, msg_event(stamp, "start", {"episode": start_episode, "steps": 0}))
         self._write("/clock", stamp, 1, msg_clock(stamp))
-        self._write("/reward", stamp, 2, msg_reward(stamp, reward, terminated, truncated))
+        self._write("/reward", stamp, 2, msg_reward(stamp, reward, terminated, truncated, applied))
         self._write("/state", stamp, 3, msg_state(stamp, points, self.fields))
         return stamp
 
@@ -157,7 +158,7 @@ def record_env_bag(path: Path, episodes: int = 2, seed: int = 3, max_episode_ste
                 gw.command(stamp, a)
                 gw.next_stamp()
                 nobs, r, te, tr, info = env.step(a)
-                stamp = gw.step(info["points"], float(r), bool(te), bool(tr))
+                stamp = gw.step(info["points"], float(r), bool(te), bool(tr), applied=a)
                 truth.obs.append(obs)
                 truth.actions.append(a)
                 truth.rewards.append(float(r))

@@ -18,8 +18,9 @@ import pytest
 from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
 from test_bag_helpers import record_env_bag, write_foreign_bag
 
-from der_ros.bag.play import merged_qos, play_bag
+from der_ros.bag.play import play_bag
 from der_ros.bag.reader import BagReader
+from der_ros.contract import QosSpec, merged_qos
 
 #: receive time vs recorded time (scaled by the rate), per message, relative to the first message
 TIMING_TOLERANCE_S = 0.05
@@ -67,9 +68,11 @@ def test_play_schedule_filter_and_qos_without_dds(tmp_path: Path) -> None:
 
     assert node.pubs["/state"].qos.depth == 50
     assert node.pubs["/state"].qos.reliability == ReliabilityPolicy.RELIABLE
-    assert merged_qos(({"reliability": "reliable", "depth": 5}, {"reliability": "best_effort", "depth": 7})) == {
-        "reliability": "best_effort", "durability": "volatile", "history": "keep_last", "depth": 7}
-    assert merged_qos(())["reliability"] == "reliable"
+    assert merged_qos(({"reliability": "reliable", "depth": 5}, {"reliability": "best_effort", "depth": 7})) == QosSpec(
+        reliability="best_effort", durability="volatile", history="keep_last", depth=7)
+    assert merged_qos(()).reliability == "reliable"
+    assert merged_qos(({"reliability": "reliable", "durability": "transient_local", "depth": 0},)) == QosSpec(
+        durability="transient_local", depth=10)  # depth unknown (0): the default depth
     # a foreign bag without recorded QoS plays with the default QoS
     write_foreign_bag(tmp_path / "foreign", n=5)
     node2 = _FakeNode()
@@ -96,7 +99,7 @@ def test_play_loop_and_synthetic_clock(tmp_path: Path) -> None:
 def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> None:  # noqa: F811 (fixture)
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from der_ros.bag.play import _message_class
+    from der_ros.contract_ros import message_class
 
     bag = tmp_path / "bag"
     if kind == "graph":
@@ -116,7 +119,7 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
             with lock:
                 got.append((time.monotonic(), topic, data))
 
-        node.create_subscription(_message_class(conn.msgtype), topic, cb, qos, raw=True)
+        node.create_subscription(message_class(conn.msgtype), topic, cb, qos, raw=True)
     rate = 2.0 if kind == "graph" else 1.0
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_graph.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")

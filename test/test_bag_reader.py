@@ -12,7 +12,7 @@ import pytest
 from mcap.reader import make_reader
 from test_bag_helpers import TS, msg_cmd, msg_reward, write_foreign_bag
 
-from der_ros.bag.reader import BagError, BagReader, TruncatedBagWarning
+from der_ros.bag.reader import BagError, BagReader, DamagedChunkWarning, TruncatedBagWarning
 from der_ros.bag.writer import BagWriter
 
 
@@ -166,45 +166,107 @@ def _read_all_decoded(bag: Path) -> list[tuple[str, int, bytes]]:
     return out
 
 
-def test_flipped_bytes_give_a_bag_error_naming_file_and_offset(tmp_path: Path) -> None:
+def _chunks(bag: Path) -> list[tuple[int, int]]:
+    """(start, end) byte range of every chunk record of the bag's file, from its chunk index."""
+    with open(_mcap_file(bag), "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    return sorted((c.chunk_start_offset, c.chunk_start_offset + c.chunk_length) for c in summary.chunk_indexes)
+
+
+def _by_chunk(bag: Path) -> dict[tuple[int, int], list[tuple[str, int, bytes]]]:
+    """The intact bag's messages grouped by the chunk that holds them."""
+    ranges = _chunks(bag)
+    out: dict[tuple[int, int], list[tuple[str, int, bytes]]] = {r: [] for r in ranges}
+    for m in BagReader(bag).messages():
+        (r,) = [r for r in ranges if r[0] <= m.offset < r[1]]
+        out[r].append((m.topic, m.log_time, bytes(m.data)))
+    return out
+
+
+def _damaged_copy(bag: Path, dst: Path, pos: int, xor: int = 0xFF) -> Path:
+    raw = bytearray(_mcap_file(bag).read_bytes())
+    raw[pos] ^= xor
+    dst.mkdir()
+    (dst / _mcap_file(bag).name).write_bytes(bytes(raw))
+    return dst
+
+
+def _read_with_warnings(bag: Path) -> tuple[list[tuple[str, int, bytes]], list[str], BagReader]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        reader = BagReader(bag)
+        got = [(m.topic, m.log_time, bytes(m.data)) for m in reader.messages()]
+    return got, [str(w.message) for w in caught if issubclass(w.category, DamagedChunkWarning)], reader
+
+
+@pytest.mark.parametrize("compression", [None, "zstd"])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
+def test_a_damaged_chunk_is_skipped_and_the_rest_is_read(tmp_path: Path, compression: str | None, seed: int) -> None:
+    """Seeded random damage inside one chunk: one warning naming the chunk's byte range and the
+    messages it held; every message of every other chunk is read, exactly."""
+    bag = _small_bag(tmp_path / "full", n=1500, compression=compression, chunk_size=4096)
+    by_chunk = _by_chunk(bag)
+    ranges = list(by_chunk)
+    assert len(ranges) >= 5
+    rng = np.random.default_rng(seed)
+    start, end = ranges[int(rng.integers(len(ranges)))]
+    pos = int(rng.integers(start + 9 + 28, end))  # past the record header and the time fields (no CRC on those)
+    bad = _damaged_copy(bag, tmp_path / "bad", pos, xor=int(rng.integers(1, 256)))
+    got, warned, reader = _read_with_warnings(bad)
+    intact = [m for r in ranges if r != (start, end) for m in by_chunk[r]]
+    assert got == intact
+    assert len(got) + len(by_chunk[(start, end)]) == 1500
+    assert len(warned) == 1 and f"bytes {start}-{end}" in warned[0], warned
+    assert f"{len(by_chunk[(start, end)])} messages lost" in warned[0]
+    (damage,) = reader.damaged
+    assert (damage.start, damage.end, damage.messages_lost) == (start, end, len(by_chunk[(start, end)]))
+    # a second pass (der replay info scans, then exports) reports the same chunk once
+    assert [(m.topic, m.log_time, bytes(m.data)) for m in reader.messages()] == intact
+    assert len(reader.damaged) == 1
+
+
+def test_a_damaged_chunk_header_is_stepped_over_with_the_chunk_index(tmp_path: Path) -> None:
+    """A flip in a chunk's record length breaks the record framing: the summary's chunk index
+    still says where the chunk ends."""
+    bag = _small_bag(tmp_path / "full", n=1500, chunk_size=4096)
+    by_chunk = _by_chunk(bag)
+    (start, end) = list(by_chunk)[2]
+    for name, pos in (("length", start + 5), ("opcode", start)):
+        got, warned, _ = _read_with_warnings(_damaged_copy(bag, tmp_path / name, pos))
+        assert got == [m for r, ms in by_chunk.items() if r != (start, end) for m in ms], name
+        assert len(warned) == 1 and f"bytes {start}-{end}" in warned[0] and "chunk index" in warned[0], warned
+
+
+def test_flipped_bytes_anywhere_skip_a_chunk_or_give_a_bag_error(tmp_path: Path) -> None:
+    """Flips all over the file: the reader skips the chunk they damaged (and reads the others
+    exactly), or raises a BagError naming file and offset, or the flip hit bytes a streamed read
+    does not use and the messages are the original ones -- never a traceback, never wrong data."""
     bag = _small_bag(tmp_path / "full", n=600, chunk_size=4096)
-    original = _read_all_decoded(bag)
+    by_chunk = _by_chunk(bag)
+    original = [m for ms in by_chunk.values() for m in ms]
     raw = _mcap_file(bag).read_bytes()
     rng = np.random.default_rng(0)
     positions = sorted(set(rng.integers(0, len(raw), 150).tolist()) | {0, 3, 8, 9, 17, 40, len(raw) - 4})
-    errors = 0
+    skipped = errors = 0
     for pos in positions:
-        bad = bytearray(raw)
-        bad[pos] ^= 0xFF
-        d = tmp_path / f"flip{pos}"
-        d.mkdir()
-        (d / _mcap_file(bag).name).write_bytes(bytes(bad))
+        d = _damaged_copy(bag, tmp_path / f"flip{pos}", pos)
         try:
-            got = _read_all_decoded(d)
+            got, warned, reader = _read_with_warnings(d)
+            for m in got:
+                TS.deserialize_cdr(m[2], "geometry_msgs/msg/Vector3Stamped" if m[0] == "/reward" else "sensor_msgs/msg/Joy")
         except BagError as exc:
             errors += 1
-            text = str(exc)
-            assert str(d / _mcap_file(bag).name) in text and "offset" in text, text
-            assert exc.path.name == _mcap_file(bag).name
+            assert str(d / _mcap_file(bag).name) in str(exc) and "offset" in str(exc), str(exc)
+            continue
+        if reader.damaged:
+            skipped += 1
+            lost = {(c.start, c.end) for c in reader.damaged}
+            assert got == [m for r, ms in by_chunk.items() if r not in lost for m in ms], pos
+            assert len(warned) == len(reader.damaged)
         else:
-            # the flip hit bytes a streamed read does not use (indexes, summary padding...):
-            # then the messages must be exactly the original ones
-            assert got == original, f"flip at {pos} changed the messages without an error"
-    assert errors > len(positions) // 3  # most of the file is chunk data protected by CRCs
-
-
-def test_flip_in_chunk_data_is_detected_by_crc(tmp_path: Path) -> None:
-    bag = _small_bag(tmp_path / "full", n=200, chunk_size=1 << 20)
-    raw = bytearray(_mcap_file(bag).read_bytes())
-    msgs = list(BagReader(bag).messages())
-    target = msgs[100].offset + 9 + 22  # first payload byte of message 100
-    raw[target + 5] ^= 0x01
-    d = tmp_path / "bad"
-    d.mkdir()
-    (d / _mcap_file(bag).name).write_bytes(bytes(raw))
-    with pytest.raises(BagError, match=r"CRC mismatch") as exc_info:
-        list(BagReader(d).messages())
-    assert exc_info.value.offset is not None and exc_info.value.offset < target
+            assert got == original, f"flip at {pos} changed the messages without a warning"
+    assert skipped > len(positions) // 3  # most of the file is chunk data protected by CRCs
+    assert errors + skipped < len(positions)
 
 
 def test_reader_streams_without_materialising_messages(tmp_path: Path) -> None:
@@ -322,12 +384,13 @@ while True:
 
 
 def test_flipped_bytes_in_a_bag_without_crcs_never_escape_as_other_errors(tmp_path: Path) -> None:
-    """rosbags writes no CRCs: a flip may go unnoticed in a payload, but never crashes the reader."""
+    """rosbags writes no CRCs: a flip may go unnoticed in a payload, but never crashes the reader;
+    a chunk whose records stop parsing is skipped (minus the messages read before the damage)."""
     write_foreign_bag(tmp_path / "rb", n=30)
     f = next((tmp_path / "rb").glob("*.mcap"))
     raw = f.read_bytes()
     rng = np.random.default_rng(1)
-    errors = 0
+    errors = skipped = 0
     for pos in sorted(set(rng.integers(0, len(raw), 80).tolist())):
         bad = bytearray(raw)
         bad[pos] ^= 0xFF
@@ -335,11 +398,16 @@ def test_flipped_bytes_in_a_bag_without_crcs_never_escape_as_other_errors(tmp_pa
         d.mkdir()
         (d / f.name).write_bytes(bytes(bad))
         try:
-            _read_all_decoded(d)
+            got, warned, reader = _read_with_warnings(d)
         except BagError as exc:
             errors += 1
             assert str(d / f.name) in str(exc)
-    assert errors > 0
+            continue
+        if reader.damaged:
+            skipped += 1
+            (damage,) = reader.damaged
+            assert len(warned) == 1 and damage.messages_lost == 60 - len(got)
+    assert errors > 0 and skipped > 0
 
 
 def test_bag_with_no_messages(tmp_path: Path) -> None:

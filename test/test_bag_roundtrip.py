@@ -99,7 +99,8 @@ def test_episode_statistics_without_episode_events(env_bag: tuple[Path, object],
 
 
 def test_synthetic_sequence_with_reordered_topics_and_missing_command(tmp_path: Path) -> None:
-    """Commands recorded late (after the next state) still align by stamp; a missing one is skipped."""
+    """A bag whose rewards do not name the applied action (older bridges): the commands give the
+    actions; recorded late (after the next state) they still align by stamp; a missing one is skipped."""
     fields = ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot", "lane_count", "length")
     from sumo_bridge.observation import ObservationConfig, empty_points, encode_observation
 
@@ -133,6 +134,33 @@ def test_synthetic_sequence_with_reordered_topics_and_missing_command(tmp_path: 
     assert ep.mean_speed == pytest.approx(np.mean([6, 7, 8, 9, 10]))
 
 
+def test_export_stores_the_applied_action_not_the_command(tmp_path: Path) -> None:
+    """After a timeout the bridge applies its default (0), names it in the next reward, and the
+    export stores that -- as the online learner does -- not the late command."""
+    from sumo_bridge.observation import POINT_FIELDS, empty_points
+
+    gw = GraphBagWriter(tmp_path / "b", POINT_FIELDS)
+    commanded = [2, 1, 2, 1]
+    applied = [2, 0, 0, 1]  # steps 1 and 2 timed out: the bridge kept the lane
+    stamps = [gw.step(empty_points(), 0.0, False, False, start_episode=1)]
+    for k, (cmd, app) in enumerate(zip(commanded, applied)):
+        gw.command(stamps[k], cmd)
+        gw.next_stamp()
+        stamps.append(gw.step(empty_points(), float(k), False, k == 3, applied=app))
+    gw.close()
+    tr = build_transitions(BagReader(tmp_path / "b"))
+    assert tr.actions.tolist() == applied
+    assert tr.overridden == 2 and tr.skipped == {}
+    # a timed-out step whose command was never recorded is still a transition: the reward names the action
+    gw = GraphBagWriter(tmp_path / "c", POINT_FIELDS)
+    s0 = gw.step(empty_points(), 0.0, False, False, start_episode=1)
+    gw.next_stamp()
+    gw.step(empty_points(), 1.0, False, True, applied=0)
+    gw.close()
+    tr = build_transitions(BagReader(tmp_path / "c"))
+    assert tr.actions.tolist() == [0] and tr.stamps_ns.tolist() == [s0] and tr.overridden == 0
+
+
 def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pytest.CaptureFixture[str]) -> None:
     path, truth = env_bag
     assert der_main(["replay", "info", str(path), "--json"]) == 0
@@ -141,6 +169,7 @@ def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pyt
         "schema_version": int, "bag": str, "name": str, "files": list, "truncated": bool, "metadata_yaml": bool,
         "metadata_stale": bool, "message_count": int, "start_ns": int, "end_ns": int, "duration_s": float,
         "topics": list, "roles": dict, "steps": int, "episodes": list, "summary": dict, "metrics": list,
+        "skipped": dict,
     }
     assert set(doc) == set(schema)
     for k, typ in schema.items():
@@ -186,7 +215,7 @@ def test_foreign_bag_info_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture
     assert [f.name for f in files] == ["topic_rates.png"]
     assert der_main(["replay", "info", str(tmp_path / "foreign")]) == 0
     assert "no episodes" in capsys.readouterr().out
-    with pytest.raises(BagError, match="no state, reward, lane_change_cmd topic"):
+    with pytest.raises(BagError, match="no state, reward topic"):
         build_transitions(BagReader(tmp_path / "foreign"))
 
 
@@ -205,14 +234,31 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     assert doc["truncated"] and doc["metadata_stale"]
     assert "truncated" in captured.err and str(cut / src.name) in captured.err
     assert 0 < doc["message_count"] < truth.n_messages
+    # a flipped byte in a chunk: that chunk is skipped, with one warning, and info reports it
     bad = tmp_path / "bad"
     bad.mkdir()
     flipped = bytearray(raw)
     flipped[len(raw) // 3] ^= 0x5A
     (bad / src.name).write_bytes(bytes(flipped))
-    assert der_main(["replay", "info", str(bad)]) == 1
+    assert der_main(["replay", "info", str(bad), "--json"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    (chunk,) = doc["skipped"]["ranges"]
+    assert doc["skipped"]["chunks"] == 1 and doc["skipped"]["messages_lost"] == chunk["messages_lost"] > 0
+    assert chunk["start"] < len(raw) // 3 < chunk["end"] and doc["skipped"]["bytes"] == chunk["end"] - chunk["start"]
+    assert doc["message_count"] == truth.n_messages - chunk["messages_lost"]
+    assert captured.err.count("skipped the damaged chunk") == 1 and f"bytes {chunk['start']}-{chunk['end']}" in captured.err
+    assert der_main(["replay", "info", str(bad)]) == 0
+    assert "DAMAGED:   1 chunk(s) skipped" in capsys.readouterr().out
+    # damage the framing of a bag without chunk index (a killed recorder's): a clean one-line error
+    worse = tmp_path / "worse"
+    worse.mkdir()
+    cut_raw = bytearray(raw[: len(raw) * 2 // 3])
+    cut_raw[8] ^= 0xFF  # the header record's opcode
+    (worse / src.name).write_bytes(bytes(cut_raw))
+    assert der_main(["replay", "info", str(worse)]) == 1
     err = capsys.readouterr().err
-    assert "error:" in err and str(bad / src.name) in err and "byte offset" in err
+    assert "error:" in err and str(worse / src.name) in err and "byte offset" in err
     assert "Traceback" not in err
 
 

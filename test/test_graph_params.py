@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from der_ros.configuration import ConfigError, from_dict
-from der_ros.nodes.params import flat_specs, unflatten
+from der_ros.configuration import ConfigError, from_dict, unflatten_names
+from der_ros.nodes.params import flat_specs
 
 PARAMS = Path(__file__).resolve().parents[1] / "config" / "graph.params.yaml"
 #: node name in the YAML -> module defining parameter_sections()
 NODES = {
-    "bridge_node": "sumo_bridge.bridge_node",
+    "bridge_node": "der_ros.nodes.bridge_node",
     "agent_node": "der_ros.nodes.agent_node",
     "recorder_node": "der_ros.nodes.recorder_node",
 }
@@ -51,7 +51,7 @@ def test_every_key_is_declared_and_every_value_validates(node):
             assert all(isinstance(v, float) for v in value), f"{PARAMS}: {node} {name} = {value!r}: write floats"
     for prefix, obj in sections.items():
         mine = {k: v for k, v in values.items() if owner.get(k) == prefix}
-        from_dict(type(obj), unflatten(prefix, mine), source=f"{PARAMS} [{node}] {prefix or 'node'}")
+        from_dict(type(obj), unflatten_names(mine, prefix), source=f"{PARAMS} [{node}] {prefix or 'node'}")
 
 
 def test_other_nodes_in_the_file_are_known():
@@ -82,4 +82,4 @@ def test_a_bad_value_would_be_caught(tmp_path):
     values = doc["agent_node"]["ros__parameters"]
     mine = {k: v for k, v in values.items() if k.startswith("replay.")}
     with pytest.raises(ConfigError, match="lam"):
-        from_dict(type(sections["replay"]), unflatten("replay", mine))
+        from_dict(type(sections["replay"]), unflatten_names(mine, "replay"))

@@ -136,11 +136,11 @@ def test_domain_ids_and_environment() -> None:
 def test_stop_with_supervisor_reports_a_supervisor_that_is_already_gone(value: str | None, expected: str) -> None:
     """A child whose parent is not the pid it was given (the supervisor died before the child
     could ask for PR_SET_PDEATHSIG) must be told to stop at once."""
-    from der_ros.graph.orphans import SUPERVISOR_PID_ENV
+    from der_ros.nodes.orphans import SUPERVISOR_PID_ENV
 
     env = {k: v for k, v in os.environ.items() if k != SUPERVISOR_PID_ENV}
     if value is not None:
         env[SUPERVISOR_PID_ENV] = str(os.getpid()) if value == "self" else value
-    code = "from der_ros.graph.orphans import stop_with_supervisor as s; print(s())"
+    code = "from der_ros.nodes.orphans import stop_with_supervisor as s; print(s())"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == (expected if sys.platform.startswith("linux") else "True")

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import pytest
 from ros_harness import reserve_domain_id
 
-from der_ros.configuration import ConfigError, param
-from der_ros.nodes.params import ConfigParameters, flat_parameters, flat_specs, unflatten
+from der_ros.configuration import ConfigError, param, unflatten_names
+from der_ros.nodes.params import ConfigParameters, flat_parameters, flat_specs
 
 
 @dataclass
@@ -41,7 +41,7 @@ def test_flatten_roundtrip_without_ros():
     flat = flat_parameters("sec", Outer())
     assert flat["sec.inner.scale"] == 2.0 and flat["sec.sizes"] == [8, 8] and flat["sec.path"] is None
     assert set(flat) == set(flat_specs(Outer, "sec"))
-    assert unflatten("sec", flat)["inner"] == {"scale": 2.0, "kind": "a"}
+    assert unflatten_names(flat, "sec")["inner"] == {"scale": 2.0, "kind": "a"}
     assert set(flat_parameters("", Outer())) >= {"lam", "inner.kind"}
 
 

@@ -14,6 +14,7 @@ from ros_harness import ros_domain, ros_graph, wait_for  # noqa: F401 - fixtures
 from sensor_msgs.msg import Joy, PointCloud2, PointField
 from std_srvs.srv import SetBool, Trigger
 
+from der_ros import contract as ct
 from der_ros.agent.config import DQNConfig
 from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import empty_points, field_index
@@ -75,7 +76,7 @@ class FakeBridge:
 
     def answer(self, stamp: int, timeout: float = 20.0) -> Joy:
         return wait_for(
-            lambda: next((c for c in list(self.cmds) if mc.time_to_ns(c.header.stamp) == stamp), None),
+            lambda: next((c for c in list(self.cmds) if ct.stamp_to_ns(c.header.stamp) == stamp), None),
             timeout, what=f"command for {stamp}", procs=[self.proc],
         )
 
@@ -91,7 +92,7 @@ class FakeBridge:
     def latest_metrics(self, pred, what: str, timeout: float = 20.0) -> dict[str, float]:
         def find():
             for m in reversed(list(self.metrics)):
-                values = mc.diagnostics_to_metrics(m)
+                values = ct.diagnostics_to_metrics(m)
                 if pred(values):
                     return values
             return None
@@ -111,7 +112,7 @@ def test_agent_answers_every_state_learns_and_fills_h2(ros_graph, tmp_path):  # 
     assert all(len(c.buttons) == 1 and 0 <= c.buttons[0] < 3 for c in cmds)
     # terminal states get no command
     terminal_stamps = {(e * EPISODE + EPISODE - 1) * STEP_NS for e in range(5)}
-    assert not terminal_stamps & {mc.time_to_ns(c.header.stamp) for c in b.cmds}
+    assert not terminal_stamps & {ct.stamp_to_ns(c.header.stamp) for c in b.cmds}
     m = b.latest_metrics(lambda v: v.get("replay/h2_size", 0) > 0, "H2 to receive promoted transitions")
     assert "losses/td_loss" in m and np.isfinite(m["losses/td_loss"])
     assert b.latest_metrics(lambda v: "charts/episodic_return" in v, "an episodic return")["charts/episodes"] >= 1

@@ -14,6 +14,7 @@ from ros_harness import ros_domain, ros_graph, wait_for  # noqa: F401 - fixtures
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 
+from der_ros import contract as ct
 from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, field_index
 from sumo_bridge.scenario import ScenarioConfig
@@ -39,18 +40,18 @@ class FakeAgent:
         self.clocks = self.probe.collect("/clock", Clock, qos=BEST_EFFORT)
         self.odoms = self.probe.collect("ego/odom", Odometry, qos=qos_profile_sensor_data)
         self.cmd = self.probe.publisher("lane_change_cmd", Joy)
-        self.proc = graph.start_node("sumo_bridge.bridge_node", params=base)
+        self.proc = graph.start_node("der_ros.nodes.bridge_node", params=base)
 
     def state(self, k: int, timeout: float = 30.0) -> PointCloud2:
         stamp = k * STEP_NS
 
         def find():
-            return next((m for m in list(self.states) if mc.time_to_ns(m.header.stamp) == stamp), None)
+            return next((m for m in list(self.states) if ct.stamp_to_ns(m.header.stamp) == stamp), None)
 
         return wait_for(find, timeout, what=f"state stamped {stamp}", procs=[self.proc])
 
     def lane(self, k: int) -> int:
-        return int(mc.cloud_to_points(self.state(k))[0, LANE])
+        return int(ct.cloud_to_points(self.state(k))[0, LANE])
 
     def send(self, k: int, action: int, sender: str = "probe", buttons=None, axes=None) -> None:
         msg = mc.make_command(k * STEP_NS, action, sender)
@@ -66,7 +67,7 @@ class FakeAgent:
         def latest():
             if not self.diags:
                 return None
-            values = mc.diagnostics_to_metrics(self.diags[-1])
+            values = ct.diagnostics_to_metrics(self.diags[-1])
             return values if values.get("sim_steps", 0) >= at_least_steps else None
 
         return wait_for(latest, timeout, what=f"bridge diagnostics after {at_least_steps} steps", procs=[self.proc])
@@ -77,11 +78,11 @@ def test_publishes_contract_layout_and_lane_change_moves_the_ego(ros_graph):  # 
     s0 = a.state(0)
     assert [f.name for f in s0.fields] == list(POINT_FIELDS)
     assert s0.width * s0.height == 1 + len(SLOT_NAMES)
-    points = mc.cloud_to_points(s0)
+    points = ct.cloud_to_points(s0)
     assert points[0, field_index("present")] == 1.0 and points[0, LANE] == 0  # ego starts on the outer lane
-    r0 = wait_for(lambda: [m for m in a.rewards if mc.time_to_ns(m.header.stamp) == 0], 5, what="reward 0")[0]
-    assert mc.parse_reward(r0) == (0, 0.0, False, False)
-    starts = wait_for(lambda: [e for m in a.episodes for e in mc.parse_episode_events(m)], 5, what="episode start")
+    r0 = wait_for(lambda: [m for m in a.rewards if ct.stamp_to_ns(m.header.stamp) == 0], 5, what="reward 0")[0]
+    assert ct.parse_reward(r0) == (0, 0.0, False, False, None)
+    starts = wait_for(lambda: [e for m in a.episodes for e in ct.parse_episode_events(m)], 5, what="episode start")
     assert starts[0][:2] == (0, "start")
     # keep lane for three steps: the ego stays on lane 0 and every state arrives at t_k = k * step
     for k in range(3):
@@ -90,14 +91,14 @@ def test_publishes_contract_layout_and_lane_change_moves_the_ego(ros_graph):  # 
     # change left (towards lane 1, the inner lane): visible in the very next state
     a.send(3, 1)
     assert a.lane(4) == 1
-    r4 = wait_for(lambda: next((m for m in list(a.rewards) if mc.time_to_ns(m.header.stamp) == 4 * STEP_NS), None),
+    r4 = wait_for(lambda: next((m for m in list(a.rewards) if ct.stamp_to_ns(m.header.stamp) == 4 * STEP_NS), None),
                   5, what="reward 4")
-    assert math.isfinite(r4.vector.x) and mc.parse_applied_action(r4) == 1
-    assert mc.parse_applied_action(r0) is None  # an episode's first state follows no action
+    assert math.isfinite(r4.vector.x) and ct.parse_applied_action(r4) == 1
+    assert ct.parse_applied_action(r0) is None  # an episode's first state follows no action
     # /clock carries the same step keys (best effort: some may be dropped, never out of order)
-    clocks = [mc.time_to_ns(c.clock) for c in list(a.clocks)]
+    clocks = [ct.stamp_to_ns(c.clock) for c in list(a.clocks)]
     assert clocks and clocks == sorted(clocks) and set(clocks) <= {k * STEP_NS for k in range(10)}
-    wait_for(lambda: any(mc.time_to_ns(o.header.stamp) == 4 * STEP_NS for o in list(a.odoms)), 5, what="ego/odom")
+    wait_for(lambda: any(ct.stamp_to_ns(o.header.stamp) == 4 * STEP_NS for o in list(a.odoms)), 5, what="ego/odom")
     c = a.counters(at_least_steps=4)
     assert c["commands/accepted"] == 4 and c["commands/timeouts"] == 0
 
@@ -109,8 +110,8 @@ def test_lockstep_late_command_and_duplicate_never_apply_to_another_step(ros_gra
     # no answer to step 0 within the timeout: the default (keep lane) is applied
     time.sleep(1.6 * timeout)
     assert a.lane(1) == 0
-    r1 = next(m for m in list(a.rewards) if mc.time_to_ns(m.header.stamp) == STEP_NS)
-    assert mc.parse_applied_action(r1) == 0  # the reward says which action was really applied
+    r1 = next(m for m in list(a.rewards) if ct.stamp_to_ns(m.header.stamp) == STEP_NS)
+    assert ct.parse_applied_action(r1) == 0  # the reward says which action was really applied
     # the late answer to step 0 asks for a lane change; it must not be applied to step 1
     a.send(0, 1)
     a.send(1, 0)
@@ -172,7 +173,7 @@ def test_free_run_steps_on_its_timer_and_applies_the_latest_command(ros_graph): 
     a = FakeAgent(ros_graph, mode="free_run", real_time_factor=2.0)  # a step every 0.25 s of wall time
     # nobody answers: the simulation still advances, one stamp per step
     assert a.lane(3) == 0
-    stamps = sorted(mc.time_to_ns(m.header.stamp) for m in list(a.states))
+    stamps = sorted(ct.stamp_to_ns(m.header.stamp) for m in list(a.states))
     assert stamps[:4] == [k * STEP_NS for k in range(4)]
     a.state(4)
     a.send(4, 1)  # answered within the step period: applied at the next tick

@@ -13,7 +13,7 @@ from rclpy.qos import QoSProfile
 from ros_harness import REPO, ros_domain, ros_graph, wait_for  # noqa: F401 - fixtures
 from sensor_msgs.msg import PointCloud2
 
-from der_ros.nodes import msg_conversions as mc
+from der_ros import contract as ct
 
 pytestmark = pytest.mark.ros
 
@@ -38,8 +38,7 @@ def reference_episodes(max_steps: int, overrides: dict) -> list[tuple[str, int, 
 
     from der_ros.agent.config import DQNConfig
     from der_ros.agent.dqn import DQNAgent
-    from der_ros.configuration import from_dict
-    from der_ros.nodes.params import unflatten
+    from der_ros.configuration import from_dict, unflatten_names
     from der_ros.replay.config import ReplayConfig
     from sumo_bridge.lane_change_env import LaneChangeEnv
     from sumo_bridge.scenario import ScenarioConfig
@@ -50,7 +49,7 @@ def reference_episodes(max_steps: int, overrides: dict) -> list[tuple[str, int, 
     agent_values = {**doc["agent_node"]["ros__parameters"], **overrides}
 
     def section(values: dict, prefix: str, cls: type) -> object:
-        return from_dict(cls, unflatten(prefix, {k: v for k, v in values.items() if k.startswith(prefix + ".")}))
+        return from_dict(cls, unflatten_names(values, prefix))
 
     env = LaneChangeEnv(section(bridge, "scenario", ScenarioConfig))
     try:
@@ -100,7 +99,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
         params={**AGENT_OVERRIDES, "metrics_every": 5, "checkpoint_out": str(ckpt)},
     )
     bridge = ros_graph.start_node(
-        "sumo_bridge.bridge_node",
+        "der_ros.nodes.bridge_node",
         params_file=PARAMS_FILE,
         params={"max_steps": MAX_STEPS, "command_timeout": 5.0, "diagnostics_every": 50, "min_subscribers": 2},
     )
@@ -115,7 +114,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
     n_ends = int(s["events/success"] + s["events/collision"] + s["events/time_limit"])
 
     def episode_ends():
-        found = [e for m in list(episodes) for e in mc.parse_episode_events(m) if e[1] != "start"]
+        found = [e for m in list(episodes) for e in ct.parse_episode_events(m) if e[1] != "start"]
         return found if len(found) == n_ends else None
 
     ends = wait_for(episode_ends, 10, what=f"{n_ends} episode end events")
@@ -124,7 +123,7 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
 
     def last_with(key):
         for m in reversed(list(metrics)):
-            values = mc.diagnostics_to_metrics(m)
+            values = ct.diagnostics_to_metrics(m)
             if key in values:
                 return values
         return None

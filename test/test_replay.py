@@ -14,18 +14,14 @@ import pytest
 from scipy import stats
 
 from der_ros.configuration import ConfigError, from_dict
-from der_ros.replay import (
-    Batch,
-    DoubleReplay,
-    PrioritizedReplay,
-    ReplayConfig,
-    ReplayMemoryError,
-    SumTree,
-    UniformReplay,
-    load_replay,
-    make_replay,
-    storage_bytes,
-)
+from der_ros.replay.base import Batch
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.double_replay import DoubleReplay
+from der_ros.replay.factory import load_replay, make_replay
+from der_ros.replay.prioritized import PrioritizedReplay
+from der_ros.replay.storage import ReplayMemoryError, storage_bytes
+from der_ros.replay.sum_tree import SumTree
+from der_ros.replay.uniform import UniformReplay
 
 P_MIN = 1e-3  # chi-square significance level used throughout
 
@@ -371,7 +367,7 @@ def _set_numba(buf, flag: bool) -> None:
     tree.use_numba = flag
 
 
-@pytest.mark.skipif(not __import__("der_ros.replay._kernels", fromlist=["x"]).HAVE_NUMBA,
+@pytest.mark.skipif(not __import__("der_ros.replay._numba", fromlist=["x"]).HAVE_NUMBA,
                     reason="numba not installed: only the numpy kernels exist")
 @pytest.mark.parametrize("kind", ["per", "der"])
 @pytest.mark.parametrize("eq3_sum", ["h2", "batch"])

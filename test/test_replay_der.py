@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from der_ros.replay import DoubleReplay, ReplayConfig, make_replay
-from der_ros.replay.double_replay import h2_split
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.double_replay import DoubleReplay, h2_split
+from der_ros.replay.factory import make_replay
 
 P_MIN = 1e-3
 
@@ -25,10 +26,10 @@ def fill(buf, n: int, start: int = 0) -> None:
     buf.add_batch(obs, ids % 3, ids.astype(np.float32), obs + 0.5, ids % 7 == 0, ids % 5 == 0)
 
 
-def der(**kw) -> DoubleReplay:
-    args = dict(capacity=100, h2_capacity=50, obs_shape=(2,), lam=0.5, h2_min_size=1, seed=0)
-    args.update(kw)
-    return DoubleReplay(**args)
+def der(seed: int = 0, obs_shape: tuple[int, ...] = (2,), **fields) -> DoubleReplay:
+    cfg = dict(kind="der", capacity=100, h2_capacity=50, lam=0.5, h2_min_size=1)
+    cfg.update(fields)
+    return DoubleReplay(ReplayConfig(**cfg), obs_shape, seed=seed)
 
 
 def h1_ids(buf: DoubleReplay) -> set[int]:
@@ -339,6 +340,10 @@ def test_nonfinite_td_errors_are_rejected_without_change(bad):
 def test_max_log_weight_limit_depends_on_h2_capacity():
     with pytest.raises(Exception, match="max_log_weight = 699"):
         der(h2_capacity=100_000, max_log_weight=699.0)
+    with pytest.raises(Exception, match="h2_capacity = None; DoubleReplay needs it resolved"):
+        DoubleReplay(ReplayConfig(kind="der", capacity=10), (2,))  # the batch-size defaults are not resolved
+    with pytest.raises(Exception, match="kind = 'per'"):
+        DoubleReplay(ReplayConfig(kind="per", capacity=10, h2_capacity=5, h2_min_size=2), (2,))
     cfg = ReplayConfig(kind="der", capacity=1000, max_log_weight=695.0)  # 700 - ln(12800) = 690.5
     with pytest.raises(Exception, match="max_log_weight = 695"):
         make_replay(cfg, (2,), np.float32, 128, 0)

@@ -18,7 +18,8 @@ import torch
 import yaml
 
 from der_ros import cli
-from der_ros.agent import DQNAgent, DQNConfig
+from der_ros.agent.config import DQNConfig
+from der_ros.agent.dqn import DQNAgent
 from der_ros.replay.config import ReplayConfig
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env

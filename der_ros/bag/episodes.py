@@ -1,9 +1,11 @@
 """Steps and episodes rebuilt from a recorded der_ros bag (ROS-free).
 
-The graph contract (docs/architecture.md) keys every decision step by the ``state`` stamp
-t_k: ``reward`` (same stamp) carries the reward of arriving in state k and the
-terminated/truncated flags, ``lane_change_cmd`` (same stamp) the action answering it, and the
-``episode`` topic the bridge's own start/success/collision/time_limit events. Topics are
+The graph contract (:mod:`der_ros.contract`) keys every decision step by the ``state`` stamp
+t_k: ``reward`` (same stamp) carries the reward of arriving in state k, the
+terminated/truncated flags and the action the bridge applied in the step that led to k,
+``lane_change_cmd`` (same stamp) the action the agent commanded in answer to k, and the
+``episode`` topic the bridge's own start/success/collision/time_limit events. The messages
+are parsed by the contract's own parsers, the ones the nodes use. Topics are
 recorded on different subscriptions, so their log order can interleave; :func:`iter_steps`
 joins them by stamp with a bounded reorder window (memory stays flat in the bag length).
 
@@ -27,7 +29,25 @@ from typing import Any
 import numpy as np
 
 from der_ros.bag.reader import BagError, BagReader, Message
-from der_ros.bag.topics import parse_key_values, topic_by_name
+from der_ros.contract import (
+    CLOCK,
+    COMMAND,
+    EPISODE,
+    EPISODE_ENDS,
+    EPISODE_START,
+    METRICS,
+    REWARD,
+    STATE,
+    TOPICS,
+    cloud_to_points,
+    command_action,
+    diagnostics_to_metrics,
+    header_ns,
+    parse_episode_events,
+    parse_reward,
+    point_field_names,
+    topic_by_name,
+)
 
 __all__ = [
     "ROLE_TYPES",
@@ -38,28 +58,12 @@ __all__ = [
     "decode_points",
     "iter_steps",
     "scan_bag",
-    "stamp_ns",
 ]
 
 log = logging.getLogger(__name__)
 
 #: role (the topic's name in the graph contract) -> message type
-ROLE_TYPES: dict[str, str] = {
-    "/clock": "rosgraph_msgs/msg/Clock",
-    "state": "sensor_msgs/msg/PointCloud2",
-    "reward": "geometry_msgs/msg/Vector3Stamped",
-    "ego/odom": "nav_msgs/msg/Odometry",
-    "episode": "diagnostic_msgs/msg/DiagnosticArray",
-    "lane_change_cmd": "sensor_msgs/msg/Joy",
-    "agent/metrics": "diagnostic_msgs/msg/DiagnosticArray",
-}
-_END_EVENTS = ("success", "collision", "time_limit")
-_FLOAT64 = 8  # sensor_msgs/PointField.FLOAT64
-
-
-def stamp_ns(header: Any) -> int:
-    """``std_msgs/Header`` -> stamp in nanoseconds (the step key)."""
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+ROLE_TYPES: dict[str, str] = {spec.name: spec.msgtype for spec in TOPICS}
 
 
 def resolve_topics(reader: BagReader, namespace: str | None = None) -> dict[str, str]:
@@ -74,7 +78,7 @@ def resolve_topics(reader: BagReader, namespace: str | None = None) -> dict[str,
         spec = topic_by_name(topic)
         if spec is None or spec.msgtype != conn.msgtype:
             continue
-        if ns is not None and spec.name != "/clock" and not topic.startswith(ns + "/"):
+        if ns is not None and spec.name != CLOCK and not topic.startswith(ns + "/"):
             continue
         if spec.name in roles:
             log.warning("topics %s and %s both look like %r; using %s (pick one with a namespace)",
@@ -85,31 +89,12 @@ def resolve_topics(reader: BagReader, namespace: str | None = None) -> dict[str,
 
 
 def decode_points(msg: Any, where: Message | None = None) -> np.ndarray:
-    """A decoded ``state`` PointCloud2 -> ``(n_points, n_fields)`` float64 array, bit-exact.
-
-    Every field must be FLOAT64, count 1, packed in order (the bridge's layout); anything else
-    raises :class:`BagError` naming the field, since a silently re-typed observation would
-    break the bit-identity promise of the export.
-    """
-    n_fields = len(msg.fields)
-    for i, f in enumerate(msg.fields):
-        if f.datatype != _FLOAT64 or f.offset != 8 * i or f.count != 1:
-            raise _decode_error(
-                where, f"state field {f.name!r}: datatype {f.datatype} offset {f.offset} count {f.count}, "
-                f"expected FLOAT64 at offset {8 * i}"
-            )
-    n = int(msg.width) * int(msg.height)
-    data = msg.data
-    if int(msg.point_step) != 8 * n_fields or len(data) != n * 8 * n_fields:
-        raise _decode_error(
-            where, f"state point_step {msg.point_step} with {len(data)} bytes for {n} points of {n_fields} fields"
-        )
-    dtype = np.dtype(">f8" if msg.is_bigendian else "<f8")
-    return np.frombuffer(np.asarray(data, dtype=np.uint8).tobytes(), dtype=dtype).astype(np.float64).reshape(n, n_fields)
-
-
-def point_field_names(msg: Any) -> tuple[str, ...]:
-    return tuple(str(f.name) for f in msg.fields)
+    """A decoded ``state`` PointCloud2 -> ``(n_points, n_fields)`` float64 array, bit-exact
+    (:func:`der_ros.contract.cloud_to_points`); :class:`BagError` naming the message if malformed."""
+    try:
+        return cloud_to_points(msg)
+    except ValueError as exc:
+        raise _decode_error(where, str(exc)) from None
 
 
 def _decode_error(where: Message | None, reason: str) -> BagError:
@@ -128,7 +113,11 @@ class Step:
     reward: float | None = None
     terminated: bool = False
     truncated: bool = False
+    #: the action the agent commanded in answer to state k (``lane_change_cmd`` stamped t_k)
     action: int | None = None
+    #: the action the bridge applied in the step that led to state k (from the reward stamped t_k;
+    #: None at an episode's first state or in bags of bridges that do not report it)
+    applied_action: int | None = None
 
 
 def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
@@ -140,7 +129,7 @@ def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
     message read, in log order -- every message of the bag with ``read_all`` -- so callers
     collect counts and events in the same pass.
     """
-    t_state, t_reward, t_cmd = roles.get("state"), roles.get("reward"), roles.get("lane_change_cmd")
+    t_state, t_reward, t_cmd = roles.get(STATE), roles.get(REWARD), roles.get(COMMAND)
     wanted = None if read_all else {t for t in (t_state, t_reward, t_cmd) if t}
     pending: dict[int, Step] = {}
     order: list[int] = []  # heap of the pending stamps
@@ -162,24 +151,28 @@ def iter_steps(reader: BagReader, roles: dict[str, str], *, window: int = 256,
         topic = msg.topic
         if topic == t_state:
             m = msg.decode()
-            s = get(stamp_ns(m.header))
+            s = get(header_ns(m))
             if s is not None:
                 s.points = decode_points(m, msg)
                 s.fields = point_field_names(m)
         elif topic == t_reward:
             m = msg.decode()
-            s = get(stamp_ns(m.header))
+            s = get(header_ns(m))
             if s is not None:
-                s.reward = float(m.vector.x)
-                s.terminated = bool(m.vector.y == 1.0)
-                s.truncated = bool(m.vector.z == 1.0)
+                try:
+                    r = parse_reward(m)
+                except ValueError as exc:
+                    raise _decode_error(msg, str(exc)) from None
+                s.reward, s.terminated, s.truncated, s.applied_action = (
+                    r.reward, r.terminated, r.truncated, r.applied_action)
         elif topic == t_cmd:
             m = msg.decode()
-            s = get(stamp_ns(m.header))
+            s = get(header_ns(m))
             if s is not None:
-                if len(m.buttons) < 1:
-                    raise _decode_error(msg, "lane_change_cmd without buttons[0] (the action)")
-                s.action = int(m.buttons[0])
+                try:
+                    s.action = command_action(m)
+                except ValueError as exc:
+                    raise _decode_error(msg, str(exc)) from None
         else:
             continue
         if len(pending) > window:
@@ -287,7 +280,7 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
     times = [None, None]
     events: list[tuple[int, str, dict[str, Any]]] = []
     metric_lists: dict[str, tuple[array, array]] = {}
-    t_episode, t_metrics = roles.get("episode"), roles.get("agent/metrics")
+    t_episode, t_metrics = roles.get(EPISODE), roles.get(METRICS)
 
     rates: dict[str, dict[int, int]] = {}
 
@@ -307,23 +300,14 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
         if times[1] is None or lt > times[1]:
             times[1] = lt
         if topic == t_episode:
-            m = msg.decode()
-            st = stamp_ns(m.header)
-            for status in m.status:
-                if status.name == "episode":
-                    events.append((st, str(status.message), parse_key_values(status.values)))
+            events.extend(parse_episode_events(msg.decode()))
         elif topic == t_metrics:
             m = msg.decode()
-            t = stamp_ns(m.header) / 1e9 if m.header.stamp.sec or m.header.stamp.nanosec else lt / 1e9
-            for status in m.status:
-                for kv in status.values:
-                    try:
-                        v = float(kv.value)
-                    except ValueError:
-                        continue
-                    ts, vs = metric_lists.setdefault(kv.key, (array("d"), array("d")))
-                    ts.append(t)
-                    vs.append(v)
+            t = header_ns(m) / 1e9 if m.header.stamp.sec or m.header.stamp.nanosec else lt / 1e9
+            for key, v in diagnostics_to_metrics(m).items():
+                ts, vs = metric_lists.setdefault(key, (array("d"), array("d")))
+                ts.append(t)
+                vs.append(v)
 
     segments: list[_Segment] = []
     cur: _Segment | None = None
@@ -364,8 +348,8 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
 def _merge(segments: list[_Segment], events: list[tuple[int, str, dict[str, Any]]]) -> list[EpisodeSummary]:
     """Attach the bridge's start/end events to the step segments (or build episodes from events)."""
     out: list[EpisodeSummary] = []
-    ends = [e for e in events if e[1] in _END_EVENTS]
-    starts = [e for e in events if e[1] == "start"]
+    ends = [e for e in events if e[1] in EPISODE_ENDS]
+    starts = [e for e in events if e[1] == EPISODE_START]
     if not segments:
         # Events only (e.g. a bag recorded without state/reward): pair by episode id, else in order.
         start_by_id = {e[2].get("episode"): e for e in starts}

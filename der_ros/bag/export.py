@@ -1,18 +1,25 @@
 """Transitions (s, a, r, s', terminated, truncated) rebuilt from a recorded bag, as the agent saw them.
 
-Alignment (docs/architecture.md, "ROS 2 graph contract"): transition k is
+Alignment (:mod:`der_ros.contract`): transition k is
 
     s_k     = encode_observation(points of the ``state`` stamped t_k, cfg)
-    a_k     = buttons[0] of the ``lane_change_cmd`` stamped t_k
+    a_k     = the action the bridge applied: ``applied_action=<a>`` in the frame_id of the
+              ``reward`` stamped t_{k+1} (else, in bags whose bridge did not report it,
+              buttons[0] of the ``lane_change_cmd`` stamped t_k)
     r_{k+1}, terminated_{k+1}, truncated_{k+1} = x, y, z of the ``reward`` stamped t_{k+1}
     s_{k+1} = encode_observation(points of the ``state`` stamped t_{k+1}, cfg)
+
+The applied action is what the online learner stores (:mod:`der_ros.agent.online`): after a
+command timeout (or a late or duplicate command) the bridge applies its default instead of the
+command, and a transition that claimed the command would teach the offline learner an action
+the simulation never took. ``Transitions.overridden`` counts the transitions where the two differ.
 
 for consecutive steps of one episode (no transition leaves a terminal or truncated state: the
 next stamp is the first state of a new episode). The points are decoded from the FLOAT64
 PointCloud2 bytes and passed through the same :func:`sumo_bridge.observation.encode_observation`
 as the environment and the agent node, so the observations are bit-identical. Rewards stay
-float64 (the message's type). Steps with a missing part (a state, reward or command the
-recorder did not get, e.g. at a cut) produce no transition and are counted in ``skipped``.
+float64 (the message's type). Steps with a missing part (a state or reward the recorder did not
+get, e.g. at a cut, or no action known at all) produce no transition and are counted in ``skipped``.
 
 The observation scales (``ObservationConfig``) are not in the PointCloud2; they come from the
 caller, else the bag's ``custom_data['der_ros/observation']`` (JSON), else the run's
@@ -28,9 +35,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from der_ros.bag.episodes import iter_steps, resolve_topics
 from der_ros.bag.reader import BagError, BagReader
+from der_ros.configuration import flatten_names, from_dict, unflatten_names
+from der_ros.contract import REWARD, STATE
+from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, encode_observation
 
 __all__ = ["Transitions", "build_transitions", "save_transitions", "load_transitions", "observation_config_of"]
 
@@ -52,6 +63,8 @@ class Transitions:
     stamps_ns: np.ndarray  # (N,) int64: t_k of s_k
     episode: np.ndarray  # (N,) int64: index of the episode in the bag (0-based)
     skipped: dict[str, int] = field(default_factory=dict)
+    #: transitions whose applied action differs from the recorded command (timeouts, late commands)
+    overridden: int = 0
 
     def __len__(self) -> int:
         return int(self.actions.shape[0])
@@ -77,9 +90,6 @@ def observation_config_of(reader: BagReader) -> Any | None:
     ``<run>/bag``): the agent node's ``observation.*`` parameters (what the agent encoded
     with), else the bridge's ``scenario.observation.*``.
     """
-    from der_ros.configuration import from_dict
-    from sumo_bridge.observation import ObservationConfig
-
     custom = ((reader.metadata or {}).get("custom_data") or {}).get(OBS_CONFIG_KEY)
     if custom:
         try:
@@ -91,12 +101,10 @@ def observation_config_of(reader: BagReader) -> Any | None:
     if not params_path.is_file():
         return None
     try:
-        import yaml
-
         params = yaml.safe_load(params_path.read_text()) or {}
-        for node, prefix in (("agent_node", "observation."), ("bridge_node", "scenario.observation.")):
-            values = ((params.get(node) or {}).get("ros__parameters") or {})
-            found = {k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix) and "." not in k[len(prefix):]}
+        for node, prefix in (("agent_node", "observation"), ("bridge_node", "scenario.observation")):
+            values = flatten_names((params.get(node) or {}).get("ros__parameters") or {})
+            found = unflatten_names(values, prefix)
             if found:
                 log.info("%s: observation config from %s (%s)", reader.path, params_path, node)
                 return from_dict(ObservationConfig, found, source=str(params_path))
@@ -107,15 +115,13 @@ def observation_config_of(reader: BagReader) -> Any | None:
 
 def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: str | None = None) -> Transitions:
     """Rebuild the transitions of a bag (see the module docstring for the alignment)."""
-    from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, encode_observation
-
     if obs_cfg is None:
         obs_cfg = observation_config_of(reader)
         if obs_cfg is None:
             log.info("%s: no observation config recorded; using ObservationConfig() defaults", reader.path)
             obs_cfg = ObservationConfig()
     roles = resolve_topics(reader, namespace)
-    missing = [r for r in ("state", "reward", "lane_change_cmd") if r not in roles]
+    missing = [r for r in (STATE, REWARD) if r not in roles]
     if missing:
         raise BagError(reader.path, None, f"cannot export transitions: no {', '.join(missing)} topic in the bag "
                        f"(found {', '.join(sorted(reader.topics())) or 'no topics'})")
@@ -128,6 +134,7 @@ def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: 
     stamp_l: list[int] = []
     ep_l: list[int] = []
     skipped = {"no_command": 0, "no_state": 0, "no_reward": 0}
+    overridden = 0
     prev = None
     prev_obs: np.ndarray | None = None
     episode = 0
@@ -141,16 +148,19 @@ def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: 
             except ValueError as exc:
                 raise BagError(reader.path, None, f"state stamped {s.stamp_ns} ns: {exc}") from None
         if prev is not None and not (prev.terminated or prev.truncated):
-            if prev.action is None:
+            # the action the bridge applied to go from prev to s, as the online learner stores it
+            action = s.applied_action if s.applied_action is not None else prev.action
+            if action is None:
                 skipped["no_command"] += 1
             elif prev_obs is None or obs is None:
                 skipped["no_state"] += 1
             elif s.reward is None:
                 skipped["no_reward"] += 1
             else:
+                overridden += int(prev.action is not None and prev.action != action)
                 obs_l.append(prev_obs)
                 next_l.append(obs)
-                act_l.append(prev.action)
+                act_l.append(action)
                 rew_l.append(s.reward)
                 term_l.append(s.terminated)
                 trunc_l.append(s.truncated)
@@ -170,6 +180,7 @@ def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: 
         stamps_ns=np.asarray(stamp_l, dtype=np.int64),
         episode=np.asarray(ep_l, dtype=np.int64),
         skipped={k: v for k, v in skipped.items() if v},
+        overridden=overridden,
     )
 
 

@@ -19,14 +19,22 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
+from der_ros.agent.config import DQNConfig
+from der_ros.bag.episodes import scan_bag
 from der_ros.bag.export import Transitions, build_transitions
 from der_ros.bag.reader import BagError, BagReader
+from der_ros.configuration import ConfigError, flatten_names, load_yaml, unflatten_names, validate
+from der_ros.contract import EPISODE_COLLISION, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
+from der_ros.replay.config import ReplayConfig
+from der_ros.train.envs import make_env
+from sumo_bridge.observation import ObservationConfig
 
 __all__ = [
     "add_train_arguments",
@@ -113,7 +121,7 @@ class OfflineResult:
 
 
 def make_agent(obs_dim: int, n_actions: int, dqn_cfg: Any, replay_cfg: Any, seed: int) -> Any:
-    from der_ros.agent.dqn import DQNAgent
+    from der_ros.agent.dqn import DQNAgent  # lazy: torch (``der replay info`` must start fast)
 
     return DQNAgent((obs_dim,), np.float32, n_actions, dqn_cfg, replay_cfg, seed=seed, device="cpu")
 
@@ -142,8 +150,6 @@ def train_offline(tr: Transitions, dqn_cfg: Any, replay_cfg: Any, steps: int, se
 def evaluate_policy(agent: Any, env_id: str, episodes: int, seed: int = 0,
                     max_episode_steps: int | None = None, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Greedy episodes in the simulator: mean return and success / collision / time-limit rates."""
-    from der_ros.train.envs import make_env
-
     env = make_env(env_id, seed, max_episode_steps=max_episode_steps, **(env_kwargs or {}))
     returns: list[float] = []
     outcomes: list[str] = []
@@ -159,7 +165,7 @@ def evaluate_policy(agent: Any, env_id: str, episodes: int, seed: int = 0,
                 done = bool(terminated or truncated)
                 event = info.get("event") if isinstance(info, dict) else None
                 if done and event is None:
-                    event = "time_limit" if truncated else "terminated"
+                    event = EPISODE_TIME_LIMIT if truncated else "terminated"
             returns.append(ret)
             outcomes.append(str(event))
     finally:
@@ -168,9 +174,9 @@ def evaluate_policy(agent: Any, env_id: str, episodes: int, seed: int = 0,
     return {
         "episodes": len(returns),
         "mean_return": float(np.mean(returns)) if returns else None,
-        "success_rate": sum(o == "success" for o in outcomes) / n,
-        "collision_rate": sum(o == "collision" for o in outcomes) / n,
-        "time_limit_rate": sum(o == "time_limit" for o in outcomes) / n,
+        "success_rate": sum(o == EPISODE_SUCCESS for o in outcomes) / n,
+        "collision_rate": sum(o == EPISODE_COLLISION for o in outcomes) / n,
+        "time_limit_rate": sum(o == EPISODE_TIME_LIMIT for o in outcomes) / n,
         "returns": returns,
         "outcomes": outcomes,
     }
@@ -178,8 +184,6 @@ def evaluate_policy(agent: Any, env_id: str, episodes: int, seed: int = 0,
 
 def online_numbers(bags: list[Path], namespace: str | None = None) -> dict[str, Any]:
     """The online agent's episodes in the bags (finished episodes only)."""
-    from der_ros.bag.episodes import scan_bag
-
     eps = []
     for b in bags:
         eps.extend(e for e in scan_bag(BagReader(b), namespace).episodes if e.outcome != "incomplete")
@@ -187,9 +191,9 @@ def online_numbers(bags: list[Path], namespace: str | None = None) -> dict[str, 
     return {
         "episodes": len(eps),
         "mean_return": float(np.mean([e.ret for e in eps])) if eps else None,
-        "success_rate": sum(e.outcome == "success" for e in eps) / n if eps else None,
-        "collision_rate": sum(e.outcome == "collision" for e in eps) / n if eps else None,
-        "time_limit_rate": sum(e.outcome == "time_limit" for e in eps) / n if eps else None,
+        "success_rate": sum(e.outcome == EPISODE_SUCCESS for e in eps) / n if eps else None,
+        "collision_rate": sum(e.outcome == EPISODE_COLLISION for e in eps) / n if eps else None,
+        "time_limit_rate": sum(e.outcome == EPISODE_TIME_LIMIT for e in eps) / n if eps else None,
     }
 
 
@@ -200,8 +204,6 @@ def recorded_scenario(bag: Path) -> dict[str, Any] | None:
     Evaluating on the recorded scenario (network, time limit, traffic, observation scales) is
     what makes the offline numbers comparable with the online ones of the bag.
     """
-    import yaml
-
     bag_dir = bag if bag.is_dir() else bag.parent
     path = bag_dir.parent / "params.yaml"
     if not path.is_file():
@@ -211,23 +213,10 @@ def recorded_scenario(bag: Path) -> dict[str, Any] | None:
     except yaml.YAMLError as exc:
         log.warning("cannot read %s: %s", path, exc)
         return None
-    out: dict[str, Any] = {}
-    for key, value in params.items():
-        if not key.startswith("scenario."):
-            continue
-        parts = key.split(".")[1:]
-        d = out
-        for p in parts[:-1]:
-            d = d.setdefault(p, {})
-        d[parts[-1]] = value
-    return out or None
+    return unflatten_names(flatten_names(params), "scenario") or None
 
 
 def _configs(args: argparse.Namespace) -> tuple[Any, Any]:
-    from der_ros.agent.config import DQNConfig
-    from der_ros.configuration import load_yaml, validate
-    from der_ros.replay.config import ReplayConfig
-
     dqn_cfg = load_yaml(args.dqn_config, DQNConfig) if args.dqn_config else DQNConfig()
     replay_cfg = load_yaml(args.replay_config, ReplayConfig) if args.replay_config else ReplayConfig()
     replay_cfg.kind = args.replay
@@ -241,8 +230,6 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from der_ros.configuration import ConfigError
-
     if args.steps is not None and args.steps < 0:
         raise ConfigError(f"--steps = {args.steps}, expected >= 0")
     if args.eval_episodes < 0:
@@ -250,9 +237,6 @@ def run_train(args: argparse.Namespace) -> int:
     dqn_cfg, replay_cfg = _configs(args)
     obs_cfg = None
     if args.obs_config is not None:
-        from der_ros.configuration import load_yaml
-        from sumo_bridge.observation import ObservationConfig
-
         obs_cfg = load_yaml(args.obs_config, ObservationConfig)
     parts = [build_transitions(BagReader(b), obs_cfg, args.namespace) for b in args.bags]
     total = sum(len(p) for p in parts)
@@ -274,8 +258,6 @@ def run_train(args: argparse.Namespace) -> int:
             env_kwargs = {"scenario": scenario}
             log.info("evaluating on the recorded scenario (%s, from params.yaml beside the bag)", env_id)
     if obs_cfg is not None and env_id.startswith("der_ros/"):
-        from dataclasses import asdict
-
         env_kwargs.setdefault("scenario", {})["observation"] = asdict(obs_cfg)
     offline = (evaluate_policy(res.agent, env_id, args.eval_episodes, seed=args.seed,
                                max_episode_steps=args.max_episode_steps, env_kwargs=env_kwargs)

@@ -2,74 +2,36 @@
 
 * Raw CDR bytes are published as recorded (rclpy's ``Publisher.publish`` accepts ``bytes``
   and hands them to ``publish_raw``), so nothing is deserialised on the way.
-* Each topic is offered the QoS it was recorded with (``offered_qos_profiles``): reliable
-  only if every recorded publisher was reliable, transient-local only if every one was, the
-  largest KEEP_LAST depth. Topics without recorded QoS get RELIABLE / VOLATILE / depth 10.
+* Each topic is offered the QoS it was recorded with (``offered_qos_profiles``, merged by
+  :func:`der_ros.contract.merged_qos`); the depth falls back to the topic table's.
 * Timing: message i goes out at ``t0 + (log_time_i - log_time_0) / rate`` (wall clock,
   ``time.perf_counter``), so inter-message gaps are the recorded ones scaled by ``--rate``.
 * ``/clock`` is republished like any topic when recorded; ``--clock`` synthesises it from the
   log times when the bag has none.
 
-Only this module needs rclpy; it is imported when ``play`` runs.
+The one module of the bag package that needs rclpy (imported at the top: ``der replay`` loads
+it only when ``play`` runs).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import time
-from pathlib import Path
 from typing import Any
 
-from der_ros.bag.reader import BagReader, Connection, Message
-from der_ros.bag.topics import topic_by_name
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.executors import ExternalShutdownException
+from rosgraph_msgs.msg import Clock
 
-__all__ = ["add_play_arguments", "run_play", "play_bag", "merged_qos"]
+from der_ros.bag.reader import BagReader, Connection, Message
+from der_ros.contract import CLOCK, merged_qos, topic_by_name, topic_spec
+from der_ros.contract_ros import message_class, qos_profile
+
+__all__ = ["run_play", "play_bag"]
 
 log = logging.getLogger(__name__)
-
-
-def add_play_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
-    p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
-    p.add_argument("--topics", nargs="+", default=None, help="publish only these topics")
-    p.add_argument("--clock", action="store_true", help="publish /clock from the log times if the bag has no /clock")
-    p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="SECONDS",
-                   help="before playing, wait up to this long until every topic has a subscriber")
-    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing")
-
-
-def merged_qos(profiles: tuple[dict[str, Any], ...], default_depth: int = 10) -> dict[str, Any]:
-    """One QoS to offer for a topic recorded with these publisher profiles (rosbag2 dicts).
-
-    Graph introspection does not tell a publisher's history, so recorders write ``history:
-    unknown, depth: 0``; the depth then falls back to ``default_depth`` (the topic table's).
-    """
-    if not profiles:
-        return {"reliability": "reliable", "durability": "volatile", "history": "keep_last", "depth": default_depth}
-    rel = "reliable" if all(p.get("reliability") == "reliable" for p in profiles) else "best_effort"
-    dur = "transient_local" if all(p.get("durability") == "transient_local" for p in profiles) else "volatile"
-    depth = max(int(p.get("depth") or 0) for p in profiles) or default_depth
-    return {"reliability": rel, "durability": dur, "history": "keep_last", "depth": depth}
-
-
-def _message_class(msgtype: str) -> Any:
-    pkg, sub, name = msgtype.split("/")
-    return getattr(importlib.import_module(f"{pkg}.{sub}"), name)
-
-
-def _qos_profile(q: dict[str, Any]) -> Any:
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=int(q["depth"]),
-        reliability=ReliabilityPolicy.RELIABLE if q["reliability"] == "reliable" else ReliabilityPolicy.BEST_EFFORT,
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if q["durability"] == "transient_local"
-                    else DurabilityPolicy.VOLATILE),
-    )
 
 
 def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = False,
@@ -90,22 +52,18 @@ def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = Fa
             log.warning("topic %s is not in the bag", t)
     pubs: dict[str, Any] = {}
     for topic, cs in conns.items():
-        try:
-            cls = _message_class(cs[0].msgtype)
-        except (ImportError, AttributeError, ValueError):
+        cls = message_class(cs[0].msgtype)
+        if cls is None:
             log.warning("skipping %s: message type %s is not installed", topic, cs[0].msgtype)
             continue
         profiles = tuple(p for c in cs for p in c.offered_qos)
         spec = topic_by_name(topic)
         q = merged_qos(profiles, spec.qos.depth if spec is not None and spec.msgtype == cs[0].msgtype else 10)
-        pubs[topic] = node.create_publisher(cls, topic, _qos_profile(q))
+        pubs[topic] = node.create_publisher(cls, topic, qos_profile(q))
         log.info("publishing %s (%s) with %s", topic, cs[0].msgtype, q)
     clock_pub = None
-    if clock and "/clock" not in pubs:
-        from rosgraph_msgs.msg import Clock
-
-        clock_pub = node.create_publisher(Clock, "/clock", _qos_profile(
-            {"reliability": "best_effort", "durability": "volatile", "depth": 1}))
+    if clock and CLOCK not in pubs:
+        clock_pub = node.create_publisher(Clock, CLOCK, qos_profile(topic_spec(CLOCK).qos))
         pubs_for_wait = [*pubs.values(), clock_pub]
     else:
         pubs_for_wait = list(pubs.values())
@@ -144,20 +102,11 @@ def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = Fa
 
 
 def _publish_clock(pub: Any, msg: Message) -> None:
-    from builtin_interfaces.msg import Time
-    from rosgraph_msgs.msg import Clock
-
     sec, nsec = divmod(msg.log_time, 1_000_000_000)
     pub.publish(Clock(clock=Time(sec=sec, nanosec=nsec)))
 
 
 def run_play(args: argparse.Namespace) -> int:
-    try:
-        import rclpy
-        from rclpy.executors import ExternalShutdownException
-    except ImportError as exc:  # the reading tools work without ROS; play does not
-        print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}")
-        return 1
     if not args.rate > 0:
         print(f"der replay play: --rate {args.rate}: expected a number > 0")
         return 2

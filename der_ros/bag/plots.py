@@ -21,12 +21,13 @@ import numpy as np
 
 from der_ros.bag.episodes import BagScan, scan_bag
 from der_ros.bag.reader import BagReader
+from der_ros.contract import EPISODE_ENDS
 
 __all__ = ["plot_bags", "plot_scans", "moving_average"]
 
 log = logging.getLogger(__name__)
 
-_OUTCOMES = ("success", "collision", "time_limit")
+_OUTCOMES = EPISODE_ENDS
 
 
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:

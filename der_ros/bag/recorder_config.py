@@ -6,8 +6,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from der_ros.bag.topics import default_record_topics
 from der_ros.configuration import ConfigError, param
+from der_ros.contract import default_record_topics
 
 __all__ = ["RecorderConfig", "default_bag_path"]
 
@@ -26,7 +26,7 @@ class RecorderConfig:
     topics: list[str] = param(
         default_factory=default_record_topics,
         help="topics to record (relative names resolve in the node's namespace); types of topics "
-        "outside der_ros.bag.topics are discovered from the graph",
+        "outside the contract table (der_ros.contract) are discovered from the graph",
     )
     all_topics: bool = param(False, "also record every topic discovered in the graph (except exclude_topics)")
     exclude_topics: list[str] = param(

@@ -8,8 +8,8 @@
 
 Everything but ``play`` is ROS-free (``rosbags`` typestore for decoding). Read errors
 (:class:`~der_ros.bag.reader.BagError`: corrupted file, missing topics) are reported as one
-line naming the file and byte offset, exit status 1; a cut bag is read up to the cut with a
-warning.
+line naming the file and byte offset, exit status 1; a cut bag is read up to the cut, and a
+damaged chunk is skipped, each with one warning (``info`` reports what was skipped).
 """
 
 from __future__ import annotations
@@ -23,13 +23,21 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from der_ros.bag.reader import BagError, BagReader, TruncatedBagWarning
+from der_ros.bag.episodes import scan_bag
+from der_ros.bag.export import build_transitions, save_transitions
+from der_ros.bag.offline_train import add_train_arguments, run_train
+from der_ros.bag.plots import plot_bags
+from der_ros.bag.reader import BagError, BagReader, DamagedChunk, DamagedChunkWarning, TruncatedBagWarning
+from der_ros.configuration import load_yaml
+from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
+from sumo_bridge.observation import ObservationConfig
 
 __all__ = ["add_arguments", "run", "bag_info"]
 
 log = logging.getLogger(__name__)
 
-INFO_SCHEMA_VERSION = 1
+#: 2: added ``skipped`` (damaged chunks the reader stepped over)
+INFO_SCHEMA_VERSION = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,20 +64,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default=None)
 
     p = sub.add_parser("train", help="train a DQN offline from recorded transitions, then evaluate it in SUMO")
-    from der_ros.bag.offline_train import add_train_arguments
-
     add_train_arguments(p)
 
     p = sub.add_parser("play", help="publish the recorded messages into a ROS 2 graph (needs rclpy)")
-    from der_ros.bag.play import add_play_arguments
-
-    add_play_arguments(p)
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (2 = twice as fast)")
+    p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
+    p.add_argument("--topics", nargs="+", default=None, help="publish only these topics")
+    p.add_argument("--clock", action="store_true", help="publish /clock from the log times if the bag has no /clock")
+    p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="SECONDS",
+                   help="before playing, wait up to this long until every topic has a subscriber")
+    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing")
 
 
 def run(args: argparse.Namespace) -> int:
     handlers = {"info": _run_info, "plot": _run_plot, "export": _run_export, "train": _run_train, "play": _run_play}
     with warnings.catch_warnings():
         warnings.simplefilter("always", TruncatedBagWarning)
+        warnings.simplefilter("always", DamagedChunkWarning)
         warnings.showwarning = _show_warning
         try:
             return handlers[args.replay_command](args)
@@ -85,32 +97,12 @@ def _show_warning(message: Warning | str, category: type[Warning], *_a: Any, **_
 # -- info -----------------------------------------------------------------------------------------
 
 
-def _qos_text(profiles: tuple[dict[str, Any], ...]) -> str:
-    if not profiles:
-        return "-"
-    p = profiles[0]
-    parts = [str(p.get("reliability", "?")).upper()]
-    hist = str(p.get("history", "unknown")).lower()
-    if hist == "keep_last" and p.get("depth"):
-        parts.append(f"KEEP_LAST {p['depth']}")
-    elif hist == "keep_all":
-        parts.append("KEEP_ALL")
-    durability = str(p.get("durability", "volatile")).upper()
-    if durability != "VOLATILE" or len(parts) == 1:
-        parts.append(durability)
-    if len(profiles) > 1:
-        parts.append(f"({len(profiles)} publishers)")
-    return ", ".join(parts)
-
-
 def _finite(x: float) -> float | None:
     return x if isinstance(x, (int, float)) and math.isfinite(x) else None
 
 
 def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
     """The ``der replay info --json`` document (schema version :data:`INFO_SCHEMA_VERSION`)."""
-    from der_ros.bag.episodes import scan_bag
-
     reader = BagReader(path)
     scan = scan_bag(reader, namespace)
     conns = reader.topics()
@@ -126,15 +118,14 @@ def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
             "type": c.msgtype,
             "count": scan.counts.get(topic, 0),
             "qos": list(c.offered_qos),
-            "qos_text": _qos_text(c.offered_qos),
+            "qos_text": qos_text(c.offered_qos),
             "role": next((r for r, t in scan.roles.items() if t == topic), None),
         })
     eps = [e.as_dict() for e in scan.episodes]
     for e in eps:
         e["mean_speed"] = _finite(e["mean_speed"])
     n_eps = len(eps)
-    outcomes = {o: sum(1 for e in eps if e["outcome"] == o) for o in
-                ("success", "collision", "time_limit", "terminated", "incomplete")}
+    outcomes = {o: sum(1 for e in eps if e["outcome"] == o) for o in (*EPISODE_ENDS, "terminated", "incomplete")}
     finished = [e for e in eps if e["outcome"] != "incomplete"]
     return {
         "schema_version": INFO_SCHEMA_VERSION,
@@ -156,11 +147,24 @@ def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
             "episodes": n_eps,
             "finished_episodes": len(finished),
             "outcomes": outcomes,
-            "success_rate": outcomes["success"] / len(finished) if finished else None,
-            "collision_rate": outcomes["collision"] / len(finished) if finished else None,
+            "success_rate": outcomes[EPISODE_SUCCESS] / len(finished) if finished else None,
+            "collision_rate": outcomes[EPISODE_COLLISION] / len(finished) if finished else None,
             "mean_return": sum(e["return"] for e in finished) / len(finished) if finished else None,
         },
         "metrics": sorted(scan.metrics),
+        "skipped": skipped_summary(reader.damaged),
+    }
+
+
+def skipped_summary(damaged: list[DamagedChunk]) -> dict[str, Any]:
+    """What a damaged bag cost: chunks skipped, their bytes, the messages they held (None if any
+    count is unknown), and each chunk's byte range and reason."""
+    lost = [d.messages_lost for d in damaged]
+    return {
+        "chunks": len(damaged),
+        "bytes": sum(d.end - d.start for d in damaged),
+        "messages_lost": None if any(n is None for n in lost) else sum(n for n in lost if n is not None),
+        "ranges": [d.as_dict() for d in damaged],
     }
 
 
@@ -176,6 +180,11 @@ def _run_info(args: argparse.Namespace) -> int:
     elif info["metadata_stale"]:
         print("metadata:  metadata.yaml counts differ from the file (stale); showing the counts read")
     print(f"messages:  {info['message_count']}")
+    skipped = info["skipped"]
+    if skipped["chunks"]:
+        lost = "an unknown number of" if skipped["messages_lost"] is None else skipped["messages_lost"]
+        ranges = ", ".join(f"{Path(r['file']).name} bytes {r['start']}-{r['end']}" for r in skipped["ranges"])
+        print(f"DAMAGED:   {skipped['chunks']} chunk(s) skipped ({ranges}): {lost} messages lost")
     print(f"duration:  {info['duration_s']:.3f} s")
     rows = [(t["name"], t["type"], str(t["count"]), t["qos_text"]) for t in info["topics"]]
     _table(("topic", "type", "count", "QoS"), rows)
@@ -211,8 +220,6 @@ def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
 
 
 def _run_plot(args: argparse.Namespace) -> int:
-    from der_ros.bag.plots import plot_bags
-
     if args.label and len(args.label) != len(args.bags):
         print(f"der replay plot: {len(args.label)} --label for {len(args.bags)} bags", file=sys.stderr)
         return 2
@@ -223,16 +230,11 @@ def _run_plot(args: argparse.Namespace) -> int:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from der_ros.bag.export import build_transitions, save_transitions
-
     if args.to.suffix not in (".npz", ".parquet"):
         print(f"der replay export: --to {args.to}: expected a .npz or .parquet file name", file=sys.stderr)
         return 2
     obs_cfg = None
     if args.obs_config is not None:
-        from der_ros.configuration import load_yaml
-        from sumo_bridge.observation import ObservationConfig
-
         obs_cfg = load_yaml(args.obs_config, ObservationConfig)
     tr = build_transitions(BagReader(args.bag), obs_cfg, args.namespace)
     out = save_transitions(tr, args.to)
@@ -242,12 +244,13 @@ def _run_export(args: argparse.Namespace) -> int:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from der_ros.bag.offline_train import run_train
-
     return run_train(args)
 
 
 def _run_play(args: argparse.Namespace) -> int:
-    from der_ros.bag.play import run_play
-
+    try:
+        from der_ros.bag.play import run_play  # lazy: rclpy, which only play needs
+    except ImportError as exc:  # the reading tools work without ROS; play does not
+        print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}", file=sys.stderr)
+        return 1
     return run_play(args)

@@ -18,7 +18,7 @@ Why this design
   (checked on every write and by :meth:`maybe_flush`, which the recorder calls from a timer
   so a quiet topic does not hold its last messages in memory). A SIGKILL therefore loses at
   most the messages after the last flush. Such a bag has no MCAP footer/summary: streaming
-  readers (``mcap.stream_reader.StreamReader``) read it up to the cut, and its
+  readers (``mcap.stream_reader.StreamReader``, our ``BagReader``) read it up to the cut, and its
   ``metadata.yaml`` already matches the flushed part (``custom_data: der_ros/finalized:
   'false'``); :func:`recover_bag` copies it into a finalised bag (like ``ros2 bag reindex``).
   :meth:`close` writes the footer, summary and statistics, a ``rosbag2`` MCAP metadata record,
@@ -53,13 +53,24 @@ import yaml
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapFileWriter
 
-from der_ros.bag.topics import RELIABLE_VOLATILE, QosSpec, topic_by_name
+from der_ros.bag.reader import BagReader
+from der_ros.contract import (
+    EPISODE,
+    EPISODE_COLLISION,
+    EPISODE_EVENTS,
+    EPISODE_STATUS,
+    RELIABLE_VOLATILE,
+    QosSpec,
+    episode_values,
+    format_value,
+    parse_episode_events,
+    topic_by_name,
+    topic_spec,
+)
 
 __all__ = [
     "BagWriter",
     "BagWriterError",
-    "EPISODE_STATUS_NAME",
-    "EPISODE_EVENTS",
     "FINALIZED_KEY",
     "EPISODES_KEY",
     "EPISODES_FILE",
@@ -72,10 +83,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: DiagnosticStatus.name of an episode event (bridge contract).
-EPISODE_STATUS_NAME = "episode"
-#: DiagnosticStatus.message values of an episode event.
-EPISODE_EVENTS = ("start", "success", "collision", "time_limit")
 #: metadata.yaml custom_data key: "true" once close() ran, "false" while writing / after a kill.
 FINALIZED_KEY = "der_ros/finalized"
 #: MCAP metadata record name (written at close, key ``episodes``: JSON list) of the episode summary;
@@ -83,7 +90,7 @@ FINALIZED_KEY = "der_ros/finalized"
 EPISODES_KEY = "der_ros/episodes"
 #: Append-only JSON-lines file in the bag directory: one episode event per line, written at every flush.
 EPISODES_FILE = "episodes.jsonl"
-_DIAG_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+_DIAG_TYPE = topic_spec(EPISODE).msgtype
 _COMPRESSION = {None: CompressionType.NONE, "none": CompressionType.NONE,
                 "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
@@ -149,32 +156,10 @@ def qos_profiles_to_yaml(profiles: QosLike, topic: str = "") -> str:
 
 
 def episode_events_from_diagnostic_array(msg: Any, timestamp_ns: int) -> list[dict[str, Any]]:
-    """Episode events in a decoded ``DiagnosticArray`` (statuses named ``episode``).
-
-    Numeric values are parsed (ints stay ints); a value that does not parse stays a string.
-    """
-    events = []
-    for status in msg.status:
-        if status.name != EPISODE_STATUS_NAME:
-            continue
-        event: dict[str, Any] = {"t_ns": int(timestamp_ns), "event": str(status.message)}
-        stamp = getattr(msg, "header", None)
-        if stamp is not None:
-            event["stamp_ns"] = int(stamp.stamp.sec) * 1_000_000_000 + int(stamp.stamp.nanosec)
-        for kv in status.values:
-            event[str(kv.key)] = _parse_number(str(kv.value))
-        events.append(event)
-    return events
-
-
-def _parse_number(text: str) -> Any:
-    try:
-        return int(text)
-    except ValueError:
-        try:
-            return float(text)
-        except ValueError:
-            return text
+    """Episode events in a decoded ``DiagnosticArray`` as summary records (``t_ns`` = log time,
+    ``stamp_ns`` = header stamp, ``event``, then the event's values, numbers parsed)."""
+    return [{"t_ns": int(timestamp_ns), "event": event, "stamp_ns": stamp, **values}
+            for stamp, event, values in parse_episode_events(msg)]
 
 
 @dataclass
@@ -400,7 +385,7 @@ class BagWriter:
         f.start_ns = min(f.start_ns, ts)
         f.end_ns = max(f.end_ns, ts)
         f.bytes_estimate += len(payload) + 31
-        if t.msgtype == _DIAG_TYPE and t.name.rsplit("/", 1)[-1] == EPISODE_STATUS_NAME:
+        if t.msgtype == _DIAG_TYPE and t.name.rsplit("/", 1)[-1] == EPISODE:
             self._note_episode(payload, ts)
         self._since_flush += 1
         if (self.max_file_messages is not None and f.count >= self.max_file_messages) or (
@@ -430,7 +415,7 @@ class BagWriter:
         ret: float = 0.0,
         lane_changes: int = 0,
         mean_speed: float = 0.0,
-        topic: str = "episode",
+        topic: str = EPISODE,
         stamp_ns: int | None = None,
         extra: Mapping[str, Any] | None = None,
         hardware_id: str = "der_ros.bag",
@@ -447,15 +432,13 @@ class BagWriter:
         store = jazzy_typestore()
         diag = store.types
         stamp = int(timestamp_ns if stamp_ns is None else stamp_ns)
-        values = {"episode": int(episode), "steps": int(steps), "return": float(ret),
-                  "lane_changes": int(lane_changes), "mean_speed": float(mean_speed), **(extra or {})}
+        values = episode_values(episode, steps, ret, lane_changes, mean_speed, **(extra or {}))
         status = diag["diagnostic_msgs/msg/DiagnosticStatus"](
-            level=1 if event == "collision" else 0,  # WARN for collisions, as the bridge does
-            name=EPISODE_STATUS_NAME,
+            level=1 if event == EPISODE_COLLISION else 0,  # WARN for collisions, as the bridge does
+            name=EPISODE_STATUS,
             message=event,
             hardware_id=hardware_id,
-            values=[diag["diagnostic_msgs/msg/KeyValue"](key=k, value=repr(v) if isinstance(v, float) else str(v))
-                    for k, v in values.items()],
+            values=[diag["diagnostic_msgs/msg/KeyValue"](key=k, value=format_value(v)) for k, v in values.items()],
         )
         header = diag["std_msgs/msg/Header"](
             stamp=diag["builtin_interfaces/msg/Time"](sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000),
@@ -615,53 +598,33 @@ def read_episode_summary(bag: str | os.PathLike[str]) -> list[dict[str, Any]]:
 
 
 def recover_bag(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
-    """Copy a killed (unfinalised) bag into a new, finalised one; returns the messages copied.
+    """Copy a killed (unfinalised) or damaged bag into a new, finalised one; returns the messages copied.
 
-    Our ``ros2 bag reindex``: every ``.mcap`` of ``src`` is streamed (CRC-checked) up to the cut
-    left by the kill, and the complete records are written to ``dst`` with the same topics, message
-    definitions, offered QoS, stamps and order. ``src`` is not modified. Works on finalised bags too.
+    Our ``ros2 bag reindex``: the messages :class:`~der_ros.bag.reader.BagReader` streams from
+    ``src`` -- every complete record up to the cut a kill left, minus any damaged chunk (each
+    skipped with a warning) -- are written to ``dst`` with the same topics, message definitions,
+    offered QoS, stamps and order. ``src`` is not modified. Works on finalised bags too.
     """
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-
     src = Path(src)
+    reader = BagReader(src)
     hashes: dict[str, str] = {}
     custom: dict[str, str] = {}
-    meta_path = src / "metadata.yaml"
-    if meta_path.is_file():
-        info = (yaml.safe_load(meta_path.read_text()) or {}).get("rosbag2_bagfile_information", {})
-        for t in info.get("topics_with_message_count", []):
-            tm = t.get("topic_metadata", {})
-            hashes[tm.get("name", "")] = tm.get("type_description_hash", "")
-        custom = {k: v for k, v in (info.get("custom_data") or {}).items() if not k.startswith("der_ros/")}
-    files = sorted(src.glob("*.mcap"), key=lambda f: (len(f.name), f.name))
-    if not files:
-        raise BagWriterError(f"{src}: no .mcap file to recover")
+    for t in (reader.metadata or {}).get("topics_with_message_count") or []:
+        tm = t.get("topic_metadata") or {}
+        hashes[str(tm.get("name", ""))] = str(tm.get("type_description_hash", "") or "")
+    custom = {k: v for k, v in ((reader.metadata or {}).get("custom_data") or {}).items() if not k.startswith("der_ros/")}
+    store = jazzy_typestore()
     copied = 0
     with BagWriter(dst, custom_data={**custom, "der_ros/recovered_from": str(src)}) as out:
-        for f in files:
-            schemas: dict[int, Schema] = {}
-            channels: dict[int, Channel] = {}
-            with open(f, "rb") as fh:
-                try:
-                    for rec in StreamReader(fh, validate_crcs=True).records:
-                        if isinstance(rec, Schema):
-                            schemas[rec.id] = rec
-                        elif isinstance(rec, Channel):
-                            channels[rec.id] = rec
-                        elif isinstance(rec, Message):
-                            ch = channels[rec.channel_id]
-                            if not out.has_topic(ch.topic):
-                                sc = schemas[ch.schema_id]
-                                store = jazzy_typestore()
-                                digest = hashes.get(ch.topic) or (
-                                    store.hash_rihs01(sc.name) if sc.name in store.fielddefs else "")
-                                out.add_topic(ch.topic, sc.name, ch.metadata.get("offered_qos_profiles", ""),
-                                              msgdef=sc.data.decode(), rihs01=digest)
-                            out.write(ch.topic, rec.log_time, rec.data, publish_time_ns=rec.publish_time)
-                            copied += 1
-                except Exception as exc:  # the cut: a truncated record, or a chunk whose CRC does not match
-                    log.info("%s: stopped reading at the cut (%s: %s)", f.name, type(exc).__name__, exc)
+        for msg in reader.messages():
+            conn = msg.connection
+            if not out.has_topic(conn.topic):
+                own_def = conn.schema if conn.schema and conn.schema_encoding == "ros2msg" else None
+                digest = hashes.get(conn.topic) or (store.hash_rihs01(conn.msgtype) if conn.msgtype in store.fielddefs else "")
+                out.add_topic(conn.topic, conn.msgtype, conn.metadata.get("offered_qos_profiles", ""),
+                              msgdef=own_def, rihs01=digest if own_def is not None else None)
+            out.write(conn.topic, msg.log_time, msg.data, publish_time_ns=msg.publish_time)
+            copied += 1
     return copied
 
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from der_ros.train.scores import max_moving_average, moving_average
+
 __all__ = [
     "CI",
     "bootstrap_ci",
@@ -113,30 +115,6 @@ class _quiet_nan_warnings:
 
     def __exit__(self, *exc: object) -> None:
         self._ctx.__exit__(*exc)
-
-
-def moving_average(returns: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
-    """Trailing means of ``window`` consecutive values (length n - window + 1; empty if n < window)."""
-    r = np.asarray(returns, dtype=np.float64)
-    if window < 1:
-        raise ValueError(f"window = {window}, expected >= 1")
-    if r.size < window:
-        return np.empty(0, dtype=np.float64)
-    c = np.concatenate([[0.0], np.cumsum(r)])
-    return (c[window:] - c[:-window]) / window
-
-
-def max_moving_average(returns: Sequence[float] | np.ndarray, window: int = 20) -> float:
-    """The paper's "max score": highest mean of ``window`` consecutive episode returns.
-
-    A run with fewer than ``window`` episodes scores the mean of all of them.
-    """
-    r = np.asarray(returns, dtype=np.float64)
-    if r.size == 0:
-        return math.nan
-    if r.size < window:
-        return float(r.mean())
-    return float(moving_average(r, window).max())
 
 
 def average_score(returns: Sequence[float] | np.ndarray) -> float:

@@ -28,6 +28,10 @@ from typing import Any
 
 import numpy as np
 
+import der_ros
+from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
+from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
+
 __all__ = [
     "Method",
     "PAPER_METHODS",
@@ -128,8 +132,6 @@ def _finished(run_dir: Path, total_steps: int) -> bool:
 
 
 def _resolve(spec: RunSpec) -> Any:
-    from der_ros.train.config import load_experiment_config
-
     return load_experiment_config(spec.config_path, spec.all_overrides())
 
 
@@ -273,8 +275,6 @@ def run_suite(
 
 def load_result(spec: RunSpec, metric_names: Iterable[str] | None = None) -> RunResult:
     """Read a finished run's summary, episodes and (optionally only some) metrics."""
-    from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
-
     run_dir = Path(spec.run_dir)
     summary_path = run_dir / "summary.json"
     if not summary_path.is_file():
@@ -309,8 +309,6 @@ def add_suite_arguments(
 
     ``default_config`` is relative to the working directory, or else to the source checkout.
     """
-    from der_ros.train.config import add_set_argument
-
     if not Path(default_config).is_file():
         candidate = Path(__file__).resolve().parents[2] / default_config
         if candidate.is_file():
@@ -341,8 +339,6 @@ def add_suite_arguments(
 
 def suite_overrides(args: Any) -> dict[str, Any]:
     """Dotted overrides from the shared suite flags (``--steps``, ``--device``, ``--set``)."""
-    from der_ros.train.config import parse_assignments
-
     out: dict[str, Any] = {}
     if args.steps is not None:
         out["train.total_steps"] = int(args.steps)
@@ -401,8 +397,6 @@ def environment_info() -> dict[str, str]:
 
     import gymnasium
     import torch
-
-    import der_ros
 
     return {
         "date (UTC)": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M"),

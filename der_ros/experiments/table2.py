@@ -29,6 +29,7 @@ from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean
 from der_ros.experiments.suite import (
     RunResult,
     RunSpec,
+    _resolve,
     add_suite_arguments,
     default_jobs,
     environment_info,
@@ -86,8 +87,6 @@ def default_atari_jobs(specs: Sequence[RunSpec]) -> int:
     it while it is written -- plus ~1.5 GB for torch and the emulator.
     """
     import psutil
-
-    from der_ros.experiments.suite import _resolve
 
     if not specs:
         return 1

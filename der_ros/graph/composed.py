@@ -14,6 +14,13 @@ import sys
 import time
 from typing import Any
 
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+
+from der_ros.nodes.agent_node import AgentNode
+from der_ros.nodes.bridge_node import BridgeNode
+from der_ros.nodes.recorder_node import RecorderNode
 from der_ros.nodes.spin import install_stop_handlers
 
 __all__ = ["main"]
@@ -22,14 +29,6 @@ log = logging.getLogger("der_graph_composed")
 
 
 def main(argv: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
-    from der_ros.nodes.agent_node import AgentNode
-    from der_ros.nodes.recorder_node import RecorderNode
-    from sumo_bridge.bridge_node import BridgeNode
-
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
     rclpy.init(args=list(sys.argv if argv is None else argv), signal_handler_options=SignalHandlerOptions.NO)
     stop = install_stop_handlers()

@@ -10,47 +10,26 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import Joy
+
+from der_ros.contract import (
+    COMMAND,
+    EPISODE,
+    EPISODE_START,
+    METRICS,
+    QosSpec,
+    diagnostics_to_metrics,
+    parse_episode_events,
+    topic_spec,
+)
+from der_ros.contract_ros import qos_profile
+from der_ros.graph.progress import ProgressSnapshot
 from der_ros.nodes.spin import BackgroundNode
 
-__all__ = ["GraphMonitor", "ProgressSnapshot"]
-
-
-@dataclass
-class ProgressSnapshot:
-    """What the runner shows: counts since the monitor started."""
-
-    steps: int = 0
-    episodes: int = 0  # finished episodes
-    returns: list[float] = field(default_factory=list)
-    outcomes: dict[str, int] = field(default_factory=lambda: {"success": 0, "collision": 0, "time_limit": 0})
-    lane_changes: int = 0
-    metrics: dict[str, float] = field(default_factory=dict)
-
-    def mean_return(self, window: int = 10) -> float | None:
-        tail = self.returns[-window:]
-        return sum(tail) / len(tail) if tail else None
-
-    def line(self, window: int = 10) -> str:
-        """One-line status text."""
-        avg = self.mean_return(window)
-        parts = [
-            f"episodes {self.episodes}",
-            f"return avg({window}) {avg:+.1f}" if avg is not None else "return avg -",
-            f"lane changes {self.lane_changes}",
-            f"success {self.outcomes['success']}",
-            f"collision {self.outcomes['collision']}",
-            f"time limit {self.outcomes['time_limit']}",
-        ]
-        eps = self.metrics.get("charts/epsilon")
-        if eps is not None:
-            parts.append(f"eps {eps:.2f}")
-        h2 = self.metrics.get("replay/h2_fraction")
-        if h2 is not None:
-            parts.append(f"H2 frac {h2:.2f}")
-        return " | ".join(parts)
+__all__ = ["GraphMonitor"]
 
 
 class GraphMonitor(BackgroundNode):
@@ -60,14 +39,6 @@ class GraphMonitor(BackgroundNode):
     """
 
     def __init__(self, domain_id: int, namespace: str = "") -> None:
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.qos import QoSProfile
-        from sensor_msgs.msg import Joy
-
-        from der_ros.nodes.msg_conversions import diagnostics_to_metrics, parse_episode_events
-
-        self._parse_events = parse_episode_events
-        self._to_metrics = diagnostics_to_metrics
         self._lock = threading.Lock()
         self._snap = ProgressSnapshot()
         self.events: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=100_000)
@@ -80,9 +51,12 @@ class GraphMonitor(BackgroundNode):
             thread_name="der-graph-monitor",
             handle_signals=False,
         )
-        self.node.create_subscription(Joy, "lane_change_cmd", self._on_cmd, QoSProfile(depth=100))
-        self.node.create_subscription(DiagnosticArray, "episode", self._on_episode, QoSProfile(depth=100))
-        self.node.create_subscription(DiagnosticArray, "agent/metrics", self._on_metrics, QoSProfile(depth=50))
+        # the table's QoS with deeper queues: the monitor is a slow reader of bursts
+        for name, cls, callback, depth in ((COMMAND, Joy, self._on_cmd, 100), (EPISODE, DiagnosticArray, self._on_episode, 100),
+                                           (METRICS, DiagnosticArray, self._on_metrics, 50)):
+            spec = topic_spec(name).qos
+            qos = qos_profile(QosSpec.make(best_effort=spec.best_effort, depth=max(depth, spec.depth)))
+            self.node.create_subscription(cls, name, callback, qos)
         self.start()
 
     def _on_cmd(self, _msg: Any) -> None:
@@ -90,11 +64,11 @@ class GraphMonitor(BackgroundNode):
             self._snap.steps += 1
 
     def _on_episode(self, msg: Any) -> None:
-        events = self._parse_events(msg)
+        events = parse_episode_events(msg)
         with self._lock:
             for stamp, event, values in events:
                 self.events.append((stamp, event, dict(values)))
-                if event == "start":
+                if event == EPISODE_START:
                     continue
                 self._snap.episodes += 1
                 if event in self._snap.outcomes:
@@ -107,7 +81,7 @@ class GraphMonitor(BackgroundNode):
                     self._snap.lane_changes += int(lc)
 
     def _on_metrics(self, msg: Any) -> None:
-        metrics = self._to_metrics(msg)
+        metrics = diagnostics_to_metrics(msg)
         with self._lock:
             self._snap.metrics.update(metrics)
 

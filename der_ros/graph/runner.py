@@ -15,7 +15,7 @@ Why a supervisor of its own: the ROS ``launch`` package is not available from Py
 
 Pids are written to ``<run_dir>/pids.json`` (name -> pid) so tests and users can find the nodes.
 Children get the supervisor's pid in ``DER_ROS_SUPERVISOR_PID``; the node executables use it to
-stop (SIGTERM) if the supervisor itself is killed (:mod:`der_ros.graph.orphans`).
+stop (SIGTERM) if the supervisor itself is killed (:mod:`der_ros.nodes.orphans`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from der_ros.graph.orphans import SUPERVISOR_PID_ENV
+from der_ros.nodes.orphans import SUPERVISOR_PID_ENV
 
 __all__ = [
     "ProcessSpec",
@@ -129,7 +129,7 @@ class ManagedProcess:
         self.log_path = log_path
         self._log = open(log_path, "wb")  # noqa: SIM115 - closed in close()
         env = dict(spec.env if spec.env is not None else os.environ)
-        env[SUPERVISOR_PID_ENV] = str(os.getpid())  # the node stops if we die (der_ros.graph.orphans)
+        env[SUPERVISOR_PID_ENV] = str(os.getpid())  # the node stops if we die (der_ros.nodes.orphans)
         self.proc = subprocess.Popen(
             spec.argv,
             env=env,

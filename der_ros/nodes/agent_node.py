@@ -18,7 +18,7 @@ checkpoints to ``checkpoint_out`` every ``checkpoint_every`` learner steps, on t
 ``agent/set_paused`` (std_srvs/SetBool) switches evaluation mode: greedy actions, no storing,
 no learning.
 
-Parameters: the node's own (:class:`AgentNodeConfig`, top-level names), ``agent.*``
+Parameters (:mod:`der_ros.nodes.node_configs`): the node's own (:class:`AgentNodeConfig`, top-level names), ``agent.*``
 (:class:`~der_ros.agent.config.DQNConfig`), ``replay.*``
 (:class:`~der_ros.replay.config.ReplayConfig`) and ``observation.*``
 (:class:`~sumo_bridge.observation.ObservationConfig`, must equal the bridge's
@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,50 +41,35 @@ from rclpy.node import Node
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 
-from der_ros.configuration import param
+from der_ros.agent.online import OnlineLearner
+from der_ros.contract import (
+    COMMAND,
+    EPISODE,
+    EPISODE_START,
+    METRICS,
+    REWARD,
+    STATE,
+    cloud_to_points,
+    header_ns,
+    parse_episode_events,
+    parse_reward,
+)
+from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes import node_configs
+from der_ros.nodes.node_configs import AGENT_MUTABLE, AgentNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
+from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observation
 
-__all__ = ["AgentNodeConfig", "AgentNode", "MUTABLE", "parameter_sections", "main"]
+__all__ = ["AgentNode", "parameter_sections", "main"]
 
 _NS = 1_000_000_000
 
 
-@dataclass
-class AgentNodeConfig:
-    """Parameters of the agent node itself (top-level ROS parameter names)."""
-
-    seed: int = param(0, "seed of the learner (network init, exploration, replay sampling)", low=0)
-    device: str = param("cpu", "torch device: 'cpu', 'cuda', 'cuda:N' or 'auto'")
-    n_actions: int = param(3, "number of actions (0 keep lane, 1 left, 2 right)", low=2)
-    checkpoint_in: str = param("", "checkpoint to load at start (empty = start from scratch)")
-    checkpoint_out: str = param("", "checkpoint file written periodically and on shutdown (empty = never)")
-    checkpoint_every: int = param(5000, "save every this many environment steps (0 = only on shutdown / service)",
-                                  low=0)
-    metrics_every: int = param(100, "publish agent/metrics every this many gradient-step calls (and at every "
-                               "episode end)", low=1)
-    evaluate: bool = param(False, "start paused: evaluation mode (greedy actions, no learning)")
-    step_seconds: float = param(
-        0.0, "the bridge's step in seconds, to detect steps lost on every topic (0 = do not check)", low=0.0)
-    max_buffered: int = param(64, "incomplete state/reward stamps kept while waiting for the other half", low=1)
-    torch_threads: int = param(1, "torch intra-op threads (1 keeps the node from competing with SUMO)", low=1)
-    warm_up: bool = param(
-        True, "before joining the graph, run act/observe/learn on a scratch agent so that lazy set-up (the replay's "
-        "numba kernels, torch autograd) does not stall the first real steps past the bridge's command timeout")
-
-
-#: parameters that may change while the node runs (all others are read-only)
-MUTABLE = frozenset({"replay.lam", "agent.lr", "checkpoint_every", "metrics_every", "checkpoint_out"})
-
-
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
-    from der_ros.agent.config import DQNConfig
-    from der_ros.replay.config import ReplayConfig
-    from sumo_bridge.observation import ObservationConfig
-
-    return {"": AgentNodeConfig(), "agent": DQNConfig(), "replay": ReplayConfig(), "observation": ObservationConfig()}
+    return node_configs.parameter_sections("agent_node")
 
 
 class AgentNode(Node):
@@ -93,16 +77,14 @@ class AgentNode(Node):
 
     def __init__(self) -> None:
         super().__init__("agent_node")
-        import torch
+        import torch  # lazy: torch (and the learner built on it) cost a second to import
 
         from der_ros.agent.dqn import DQNAgent
-        from der_ros.agent.online import OnlineLearner
-        from sumo_bridge.observation import empty_points, encode_observation
 
         self.finished = False
         #: after SIGINT/SIGTERM, handle the messages already queued for this long before the final save
         self.drain_seconds = 0.3
-        self._params = ConfigParameters(self, parameter_sections(), mutable=MUTABLE, on_change=self._on_param_change)
+        self._params = ConfigParameters(self, parameter_sections(), mutable=AGENT_MUTABLE, on_change=self._on_param_change)
         self.cfg: AgentNodeConfig = self._params.get("")
         torch.set_num_threads(self.cfg.torch_threads)
         obs_cfg = self._params.get("observation")
@@ -131,19 +113,16 @@ class AgentNode(Node):
                                      step_ns=step_ns)
         self.learner.set_paused(self.cfg.evaluate)
         self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"
-        self.bad_messages: dict[str, int] = {"state": 0, "reward": 0, "episode": 0}
+        self.bad_messages: dict[str, int] = {STATE: 0, REWARD: 0, EPISODE: 0}
         self._learn_calls = 0
         self._last_saved_step = self.agent.steps
         self._last_metrics: dict[str, float] = {}
 
-        from sumo_bridge.bridge_node import qos_profiles
-
-        q = qos_profiles()
-        self.pub_cmd = self.create_publisher(Joy, "lane_change_cmd", q["lane_change_cmd"])
-        self.pub_metrics = self.create_publisher(DiagnosticArray, "agent/metrics", q["agent/metrics"])
-        self.create_subscription(PointCloud2, "state", self._on_state, q["state"])
-        self.create_subscription(Vector3Stamped, "reward", self._on_reward, q["reward"])
-        self.create_subscription(DiagnosticArray, "episode", self._on_episode, q["episode"])
+        self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
+        self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
+        self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE))
+        self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD))
+        self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))
         self.create_service(Trigger, "agent/save_checkpoint", self._srv_save)
         self.create_service(SetBool, "agent/set_paused", self._srv_pause)
         self.get_logger().info(
@@ -182,24 +161,22 @@ class AgentNode(Node):
 
     def _on_state(self, msg: PointCloud2) -> None:
         try:
-            points = mc.cloud_to_points(msg)
-            stamp = mc.time_to_ns(msg.header.stamp)
-            decisions = self.learner.on_state(stamp, points)
+            points = cloud_to_points(msg, POINT_FIELDS)
+            decisions = self.learner.on_state(header_ns(msg), points)
         except ValueError as exc:
-            self._reject("state", exc)
+            self._reject(STATE, exc)
             return
         self._handle(decisions)
 
     def _on_reward(self, msg: Vector3Stamped) -> None:
         try:
-            stamp, reward, terminated, truncated = mc.parse_reward(msg)
-            applied = mc.parse_applied_action(msg)
-            if applied is not None and not 0 <= applied < self.cfg.n_actions:
-                raise ValueError(f"reward applied_action = {applied}, expected 0..{self.cfg.n_actions - 1}")
+            r = parse_reward(msg)
+            if r.applied_action is not None and not 0 <= r.applied_action < self.cfg.n_actions:
+                raise ValueError(f"reward applied_action = {r.applied_action}, expected 0..{self.cfg.n_actions - 1}")
         except ValueError as exc:
-            self._reject("reward", exc)
+            self._reject(REWARD, exc)
             return
-        self._handle(self.learner.on_reward(stamp, reward, terminated, truncated, applied))
+        self._handle(self.learner.on_reward(r.stamp_ns, r.reward, r.terminated, r.truncated, r.applied_action))
 
     def _handle(self, decisions: list[Any]) -> None:
         if not decisions:
@@ -224,12 +201,12 @@ class AgentNode(Node):
 
     def _on_episode(self, msg: DiagnosticArray) -> None:
         try:
-            events = mc.parse_episode_events(msg)
+            events = parse_episode_events(msg)
         except ValueError as exc:
-            self._reject("episode", exc)
+            self._reject(EPISODE, exc)
             return
         for stamp, event, values in events:
-            if event == "start":
+            if event == EPISODE_START:
                 continue
             self.get_logger().info(f"episode {values.get('episode')} ended: {event} {values}")
             metrics = {f"episode/{event}": 1.0}

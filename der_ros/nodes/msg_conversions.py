@@ -1,19 +1,17 @@
-"""Pure conversions between core data (numpy arrays, dicts, nanoseconds) and ROS 2 messages.
+"""Builders of the graph's rclpy messages from core data (numpy arrays, dicts, nanoseconds).
 
-The message layouts are the "ROS 2 graph contract" of docs/architecture.md. Every function is
-pure (no node, no clock) so round trips are unit-testable; decoders raise :class:`ValueError`
-naming the field and the value when a message does not follow the contract, so a node can
-reject bad input where it enters.
+The layouts are the graph contract (:mod:`der_ros.contract`); the parsers that read them back
+live there too, ROS-free, so offline tools and the nodes decode with the same code. Every
+function here is pure (no node, no clock), so round trips are unit-testable.
 
-Hot-path notes: the PointCloud2 field layout is computed once per field tuple (cached), the payload
-is ``ndarray.tobytes()`` on the way out and ``np.frombuffer`` on the way in (no per-point
-Python loop).
+Hot-path notes: the PointCloud2 field layout is computed once per field tuple (cached), the
+payload is ``ndarray.tobytes()`` (no per-point Python loop).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from functools import lru_cache
 
 import numpy as np
@@ -25,36 +23,22 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from der_ros.bag.topics import parse_key_values
+from der_ros.contract import EPISODE_COLLISION, EPISODE_STATUS, METRICS_STATUS, applied_action_frame, format_value
 from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = [
-    "EPISODE_STATUS_NAME",
-    "METRICS_STATUS_NAME",
     "ns_to_time",
-    "time_to_ns",
     "make_clock",
     "points_to_cloud",
-    "cloud_to_points",
     "make_odometry",
-    "odometry_pose",
     "make_reward",
-    "parse_reward",
-    "parse_applied_action",
-    "APPLIED_ACTION_PREFIX",
     "make_command",
-    "parse_command",
     "make_episode_event",
-    "parse_episode_events",
+    "make_diagnostics",
     "metrics_to_diagnostics",
-    "diagnostics_to_metrics",
 ]
 
 _NS_PER_S = 1_000_000_000
-#: DiagnosticStatus.name of the events on the ``episode`` topic.
-EPISODE_STATUS_NAME = "episode"
-#: DiagnosticStatus.name of the status carrying the metrics on ``agent/metrics``.
-METRICS_STATUS_NAME = "agent/metrics"
 
 
 # -- time -----------------------------------------------------------------------------------------
@@ -65,11 +49,6 @@ def ns_to_time(ns: int) -> Time:
         raise ValueError(f"time = {ns} ns, expected >= 0")
     sec, nanosec = divmod(ns, _NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
-
-
-def time_to_ns(t: Time) -> int:
-    """builtin_interfaces/Time -> nanoseconds (the step key of the graph contract)."""
-    return int(t.sec) * _NS_PER_S + int(t.nanosec)
 
 
 def _header(stamp_ns: int, frame_id: str) -> Header:
@@ -114,28 +93,6 @@ def points_to_cloud(
     )
 
 
-def cloud_to_points(msg: PointCloud2, fields: tuple[str, ...] = POINT_FIELDS) -> np.ndarray:
-    """PointCloud2 -> ``(width * height, len(fields))`` float64 array; checks the layout."""
-    got = tuple(f.name for f in msg.fields)
-    if got != tuple(fields):
-        raise ValueError(f"state fields = {got}, expected {tuple(fields)}")
-    for i, f in enumerate(msg.fields):
-        if f.datatype != PointField.FLOAT64 or f.offset != 8 * i or f.count != 1:
-            raise ValueError(
-                f"state field {f.name!r}: datatype {f.datatype} offset {f.offset} count {f.count}, "
-                f"expected FLOAT64 ({PointField.FLOAT64}) at offset {8 * i}, count 1"
-            )
-    step = 8 * len(fields)
-    n = int(msg.width) * int(msg.height)
-    if msg.point_step != step or len(msg.data) != n * step:
-        raise ValueError(
-            f"state point_step = {msg.point_step}, {len(msg.data)} data bytes for {n} points, "
-            f"expected point_step {step} and {n * step} bytes"
-        )
-    dtype = np.dtype(">f8" if msg.is_bigendian else "<f8")
-    return np.frombuffer(msg.data, dtype=dtype).astype(np.float64).reshape(n, len(fields))
-
-
 # -- ego odometry ---------------------------------------------------------------------------------
 def make_odometry(
     stamp_ns: int,
@@ -164,20 +121,7 @@ def make_odometry(
     return msg
 
 
-def odometry_pose(msg: Odometry) -> tuple[int, float, float, float, float]:
-    """Inverse of :func:`make_odometry`: (stamp_ns, x, y, sumo_angle_deg in [0, 360), speed)."""
-    q = msg.pose.pose.orientation
-    yaw = 2.0 * math.atan2(q.z, q.w)
-    angle = (90.0 - math.degrees(yaw)) % 360.0
-    p = msg.pose.pose.position
-    return time_to_ns(msg.header.stamp), p.x, p.y, angle, msg.twist.twist.linear.x
-
-
 # -- reward ---------------------------------------------------------------------------------------
-#: ``reward.header.frame_id`` prefix naming the action the bridge applied to reach this state.
-APPLIED_ACTION_PREFIX = "applied_action="
-
-
 def make_reward(
     stamp_ns: int, reward: float, terminated: bool, truncated: bool, applied_action: int | None = None
 ) -> Vector3Stamped:
@@ -185,38 +129,15 @@ def make_reward(
 
     ``applied_action`` (the action the bridge actually applied in the step that led here: the
     agent's command, or the default after a timeout) goes into ``header.frame_id`` as
-    ``applied_action=<a>``; empty for an episode's first state.
+    ``applied_action=<a>`` (:func:`der_ros.contract.applied_action_frame`); empty for an episode's
+    first state.
     """
     msg = Vector3Stamped()
-    frame = "" if applied_action is None else f"{APPLIED_ACTION_PREFIX}{int(applied_action)}"
-    msg.header = _header(stamp_ns, frame)
+    msg.header = _header(stamp_ns, applied_action_frame(applied_action))
     msg.vector.x = float(reward)
     msg.vector.y = 1.0 if terminated else 0.0
     msg.vector.z = 1.0 if truncated else 0.0
     return msg
-
-
-def parse_reward(msg: Vector3Stamped) -> tuple[int, float, bool, bool]:
-    """``reward`` message -> (stamp_ns, reward, terminated, truncated); ValueError if malformed."""
-    v = msg.vector
-    if not math.isfinite(v.x):
-        raise ValueError(f"reward x = {v.x!r}, expected a finite number")
-    for name, flag in (("y (terminated)", v.y), ("z (truncated)", v.z)):
-        if flag not in (0.0, 1.0):
-            raise ValueError(f"reward {name} = {flag!r}, expected 0 or 1")
-    return time_to_ns(msg.header.stamp), float(v.x), v.y == 1.0, v.z == 1.0
-
-
-def parse_applied_action(msg: Vector3Stamped) -> int | None:
-    """The ``applied_action=<a>`` of a reward's frame_id (None when absent); ValueError if garbled."""
-    frame = msg.header.frame_id
-    if not frame.startswith(APPLIED_ACTION_PREFIX):
-        return None
-    text = frame[len(APPLIED_ACTION_PREFIX):]
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"reward frame_id = {frame!r}, expected '{APPLIED_ACTION_PREFIX}<integer>'") from None
 
 
 # -- lane-change command --------------------------------------------------------------------------
@@ -232,14 +153,9 @@ def make_command(stamp_ns: int, action: int, sender: str = "") -> Joy:
     return msg
 
 
-def parse_command(msg: Joy) -> tuple[int, list[int], list[float], str]:
-    """``lane_change_cmd`` -> (stamp_ns, buttons, axes, sender); validation is the receiver's job."""
-    return time_to_ns(msg.header.stamp), list(msg.buttons), list(msg.axes), msg.header.frame_id
-
-
 # -- episode events -------------------------------------------------------------------------------
 def _kv(values: Mapping[str, object]) -> list[KeyValue]:
-    return [KeyValue(key=str(k), value=repr(v) if isinstance(v, float) else str(v)) for k, v in values.items()]
+    return [KeyValue(key=str(k), value=format_value(v)) for k, v in values.items()]
 
 
 def make_episode_event(
@@ -249,42 +165,27 @@ def make_episode_event(
 
     A collision is reported at WARN level so generic diagnostics viewers flag it.
     """
-    level = DiagnosticStatus.WARN if event == "collision" else DiagnosticStatus.OK
+    level = DiagnosticStatus.WARN if event == EPISODE_COLLISION else DiagnosticStatus.OK
     status = DiagnosticStatus(
-        level=level, name=EPISODE_STATUS_NAME, message=event, hardware_id=hardware_id, values=_kv(values)
+        level=level, name=EPISODE_STATUS, message=event, hardware_id=hardware_id, values=_kv(values)
     )
     return DiagnosticArray(header=_header(stamp_ns, ""), status=[status])
 
 
-def parse_episode_events(msg: DiagnosticArray) -> list[tuple[int, str, dict[str, float | int | str]]]:
-    """Every ``episode`` status of a DiagnosticArray as (stamp_ns, event, values)."""
-    stamp = time_to_ns(msg.header.stamp)
-    return [
-        (stamp, s.message, parse_key_values(s.values))
-        for s in msg.status
-        if s.name == EPISODE_STATUS_NAME
-    ]
-
-
 # -- metrics --------------------------------------------------------------------------------------
 def metrics_to_diagnostics(
-    metrics: Mapping[str, float], stamp_ns: int, name: str = METRICS_STATUS_NAME, hardware_id: str = ""
+    metrics: Mapping[str, float], stamp_ns: int, name: str = METRICS_STATUS, hardware_id: str = ""
 ) -> DiagnosticArray:
     """Metrics (stable names such as ``losses/td_loss``) as one DiagnosticStatus of key/values."""
-    values = [KeyValue(key=k, value=repr(float(v))) for k, v in metrics.items()]
-    status = DiagnosticStatus(level=DiagnosticStatus.OK, name=name, hardware_id=hardware_id, values=values)
+    return make_diagnostics(stamp_ns, name, metrics, hardware_id=hardware_id)
+
+
+def make_diagnostics(
+    stamp_ns: int, name: str, values: Mapping[str, float], *, message: str = "", hardware_id: str = "", warn: bool = False
+) -> DiagnosticArray:
+    """One status of numeric key/values (``repr`` floats), WARN level when ``warn``."""
+    status = DiagnosticStatus(
+        level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK, name=name, message=message,
+        hardware_id=hardware_id, values=[KeyValue(key=k, value=repr(float(v))) for k, v in values.items()],
+    )
     return DiagnosticArray(header=_header(stamp_ns, ""), status=[status])
-
-
-def diagnostics_to_metrics(msg: DiagnosticArray, names: Sequence[str] | None = None) -> dict[str, float]:
-    """Every numeric key/value of the statuses (optionally only those named ``names``) as floats."""
-    out: dict[str, float] = {}
-    for s in msg.status:
-        if names is not None and s.name not in names:
-            continue
-        for kv in s.values:
-            try:
-                out[kv.key] = float(kv.value)
-            except ValueError:
-                continue
-    return out

@@ -25,6 +25,11 @@ Public API (used by the agent, bridge and recorder nodes)::
                              mutable={"replay.lam"}, on_change=callback)
     bound.get("agent")          # the validated DQNConfig built from the node's parameters
     flat_parameters("agent", DQNConfig())   # {"agent.lr": 0.0005, ...} (ROS-free; YAML tooling)
+
+and, ROS-free, the assembly of a graph's params file from a base file, the run's choices and
+``NODE:NAME=VALUE`` overrides (:func:`build_graph_params`, used by ``der graph``): every value is
+typed by the parameter it sets, and an unknown node or parameter is a :class:`ConfigError`
+before any process starts.
 """
 
 from __future__ import annotations
@@ -35,11 +40,35 @@ import math
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import is_dataclass
+from pathlib import Path
 from typing import Any
 
-from der_ros.configuration import ConfigError, FieldSpec, field_specs, from_dict, to_dict
+import yaml
 
-__all__ = ["ConfigParameters", "flat_parameters", "flat_specs", "unflatten", "params_file_section", "ChangeCallback"]
+from der_ros.configuration import (
+    ConfigError,
+    FieldSpec,
+    field_specs,
+    flatten_names,
+    from_dict,
+    read_yaml_mapping,
+    to_dict,
+    unflatten_names,
+)
+from der_ros.contract import STATE, default_record_topics
+from der_ros.nodes.node_configs import NODE_SECTIONS, parameter_sections
+
+__all__ = [
+    "ConfigParameters",
+    "ChangeCallback",
+    "flat_parameters",
+    "flat_specs",
+    "params_file_section",
+    "load_params_file",
+    "parse_overrides",
+    "typed_value",
+    "build_graph_params",
+]
 
 #: ``on_change(section, new_config, changed_parameter_names)``, called after a set succeeded.
 ChangeCallback = Callable[[str, Any, list[str]], None]
@@ -66,30 +95,7 @@ def flat_specs(cls_or_obj: Any, prefix: str = "") -> dict[str, FieldSpec]:
 
 def flat_parameters(prefix: str, obj: Any) -> dict[str, Any]:
     """Parameter name -> value of every leaf field of a config object (tuples become lists)."""
-    out: dict[str, Any] = {}
-
-    def walk(p: str, d: Mapping[str, Any]) -> None:
-        for k, v in d.items():
-            if isinstance(v, dict):
-                walk(_join(p, k), v)
-            else:
-                out[_join(p, k)] = v
-
-    walk(prefix, to_dict(obj))
-    return out
-
-
-def unflatten(prefix: str, values: Mapping[str, Any]) -> dict[str, Any]:
-    """Inverse of :func:`flat_parameters`: ``{"agent.lr": 1e-3}`` -> ``{"lr": 1e-3}`` (nested dicts)."""
-    out: dict[str, Any] = {}
-    cut = len(prefix) + 1 if prefix else 0
-    for name, value in values.items():
-        parts = name[cut:].split(".")
-        node = out
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = value
-    return out
+    return flatten_names(to_dict(obj), prefix)
 
 
 def params_file_section(sections: Mapping[str, Any], extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -227,7 +233,7 @@ class ConfigParameters:
 
     def _build(self, prefix: str, overrides: Mapping[str, Any], source: str) -> Any:
         values = {name: overrides[name] if name in overrides else self._value(name) for name in self._specs[prefix]}
-        return from_dict(self._types[prefix], unflatten(prefix, values), source=source)
+        return from_dict(self._types[prefix], unflatten_names(values, prefix), source=source)
 
     # -- set-parameters callbacks ----------------------------------------------------------------
     def _by_section(self, params: Iterable[Any]) -> dict[str, dict[str, Any]]:
@@ -255,3 +261,95 @@ class ConfigParameters:
             self._current[prefix] = self._build(prefix, {}, source="set_parameters")
             if self._on_change is not None:
                 self._on_change(prefix, self.get(prefix), sorted(new))
+
+
+# -- a graph's params file (ROS-free) ----------------------------------------------------------------
+def load_params_file(path: str | Path | None) -> dict[str, Any]:
+    """A ROS params YAML (node name -> ``{ros__parameters: ...}``); {} for None."""
+    if path is None:
+        return {}
+    return read_yaml_mapping(path, expected="a mapping of node names")
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
+    """``NODE:NAME=VALUE`` items (value parsed as YAML) -> node -> name -> value."""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        node, sep, rest = item.partition(":")
+        name, eq, value = rest.partition("=")
+        if not sep or not eq or node not in NODE_SECTIONS or not name:
+            raise ConfigError(f"-p {item!r}: expected NODE:NAME=VALUE with NODE in {', '.join(NODE_SECTIONS)}")
+        out.setdefault(node, {})[name] = yaml.safe_load(value)
+    return out
+
+
+def typed_value(node: str, name: str, value: Any) -> Any:
+    """``value`` with the declared type of ``node``'s parameter ``name`` (``20`` -> ``20.0`` for a float).
+
+    ROS parameters are statically typed: a float parameter given as an integer would make the
+    node refuse its params file at start-up.
+    """
+    if name == "use_sim_time":  # declared by rclpy itself
+        return bool(value)
+    specs = {k: v for prefix, obj in parameter_sections(node).items() for k, v in flat_specs(obj, prefix).items()}
+    if name not in specs:
+        raise ConfigError(f"-p {node}:{name}: {node} has no parameter {name!r}; known: {', '.join(sorted(specs))}")
+    if specs[name].type is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if specs[name].type is str and not isinstance(value, str):
+        return str(value)
+    return value
+
+
+def build_graph_params(
+    base: Mapping[str, Any],
+    *,
+    steps: int,
+    scenario: str,
+    run_dir: Path,
+    free_run: bool = False,
+    replay: str | None = None,
+    lam: float | None = None,
+    seed: int | None = None,
+    overrides: Iterable[str] = (),
+) -> dict[str, Any]:
+    """The params file of one ``der graph`` run: ``base`` plus the run's choices plus ``-p`` overrides.
+
+    Parameters are written with flat dotted names so a choice replaces the file's value whether
+    the file nested it or not. Outputs go to ``run_dir`` (``agent.pt``, ``bag``). When the recorder
+    records ``state``, the bridge waits for two subscribers (agent and recorder) before its first
+    step, unless told otherwise: a short fast run could otherwise finish before the recorder matched.
+    """
+    params = copy.deepcopy(dict(base))
+    for node in NODE_SECTIONS:
+        section = params.setdefault(node, {})
+        if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
+            raise ConfigError(f"params section {node!r} is not a mapping with ros__parameters")
+        section["ros__parameters"] = flatten_names(section.get("ros__parameters") or {})
+
+    def put(node: str, name: str, value: Any) -> None:
+        params[node]["ros__parameters"][name] = value
+
+    put("bridge_node", "max_steps", int(steps))
+    put("bridge_node", "scenario.network", scenario)
+    if free_run:
+        put("bridge_node", "mode", "free_run")
+    if replay is not None:
+        put("agent_node", "replay.kind", replay)
+    if lam is not None:
+        put("agent_node", "replay.lam", float(lam))
+    if seed is not None:
+        put("agent_node", "seed", int(seed))
+        put("bridge_node", "scenario.seed", int(seed))
+    put("agent_node", "checkpoint_out", str(run_dir / "agent.pt"))
+    put("recorder_node", "output", str(run_dir / "bag"))
+    extra = parse_overrides(overrides)
+    for node, values in extra.items():
+        for name, value in values.items():
+            put(node, name, typed_value(node, name, value))
+    rec = params["recorder_node"]["ros__parameters"]
+    records_state = rec.get("all_topics") or STATE in [
+        str(t).lstrip("/") for t in rec.get("topics", default_record_topics())]
+    if records_state and "min_subscribers" not in extra.get("bridge_node", {}):
+        put("bridge_node", "min_subscribers", 2)
+    return params

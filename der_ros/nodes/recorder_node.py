@@ -5,7 +5,7 @@ subscribes, stamps and hands over bytes:
 
 * Subscriptions are ``raw=True``: the middleware hands over the CDR bytes, which go to the
   bag unchanged (no deserialise/serialise round trip, and any message type can be recorded).
-* Topics: the ``topics`` parameter (default: the graph's table, ``der_ros.bag.topics``), whose
+* Topics: the ``topics`` parameter (default: the graph's table, :mod:`der_ros.contract`), whose
   types come from the table or, for other names, from graph discovery; with ``all_topics`` every
   topic that shows up in the graph (rescanned every ``discovery_period`` s) except
   ``exclude_topics``. A topic's subscription QoS: best effort if the table or any publisher says
@@ -24,7 +24,6 @@ subscribes, stamps and hands over bytes:
 
 from __future__ import annotations
 
-import importlib
 import logging
 import sys
 import time
@@ -32,50 +31,17 @@ from pathlib import Path
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from der_ros.bag.recorder_config import RecorderConfig, default_bag_path
-from der_ros.bag.topics import topic_by_name
 from der_ros.bag.writer import BagWriter, BagWriterError, jazzy_typestore
+from der_ros.contract import QosSpec, topic_by_name
+from der_ros.contract_ros import message_class, qos_profile, qos_to_rosbag2
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
 
-__all__ = ["RecorderNode", "main", "parameter_sections", "qos_profile_to_rosbag2"]
+__all__ = ["RecorderNode", "main", "parameter_sections"]
 
 log = logging.getLogger("recorder_node")
-_INF_NS = 2**63 - 1
-_INFINITE = {"sec": 9223372036, "nsec": 854775807}
-
-
-def _duration_dict(d: Any) -> dict[str, int]:
-    ns = int(getattr(d, "nanoseconds", 0))
-    if ns >= _INF_NS or ns < 0 or str(d) == "Infinite":
-        return dict(_INFINITE)
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-
-
-def qos_profile_to_rosbag2(q: Any) -> dict[str, Any]:
-    """An rclpy ``QoSProfile`` (e.g. a publisher's, from graph introspection) as rosbag2 YAML dict."""
-    return {
-        "history": q.history.name.lower(),
-        "depth": int(q.depth),
-        "reliability": q.reliability.name.lower(),
-        "durability": q.durability.name.lower(),
-        "deadline": _duration_dict(q.deadline),
-        "lifespan": _duration_dict(q.lifespan),
-        "liveliness": q.liveliness.name.lower(),
-        "liveliness_lease_duration": _duration_dict(q.liveliness_lease_duration),
-        "avoid_ros_namespace_conventions": bool(q.avoid_ros_namespace_conventions),
-    }
-
-
-def _message_class(msgtype: str) -> type | None:
-    """``pkg/msg/Type`` -> the generated Python class (None if the package is not installed)."""
-    try:
-        pkg, kind, name = msgtype.split("/")
-        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
-    except (ValueError, ImportError, AttributeError):
-        return None
 
 
 def parameter_sections() -> dict[str, Any]:
@@ -116,7 +82,7 @@ class RecorderNode(Node):
         for name in self._wanted:
             spec = topic_by_name(name)
             if spec is not None and name.endswith(spec.name.lstrip("/")):
-                self._subscribe(name, spec.msgtype, best_effort=spec.qos.reliability == "best_effort")
+                self._subscribe(name, spec.msgtype, best_effort=spec.qos.best_effort)
         self._discover()
         self.create_timer(cfg.discovery_period, self._discover)
         self.create_timer(min(0.25, cfg.flush_every_seconds / 2), self.writer.maybe_flush)
@@ -126,32 +92,27 @@ class RecorderNode(Node):
         )
 
     # -- subscriptions -----------------------------------------------------------------
-    def _publisher_qos(self, topic: str) -> list[Any]:
+    def _publisher_qos(self, topic: str) -> list[dict[str, Any]]:
+        """The QoS the publishers of ``topic`` offer, as rosbag2 dicts (what the bag stores)."""
         try:
-            return [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+            return [qos_to_rosbag2(info.qos_profile) for info in self.get_publishers_info_by_topic(topic)]
         except Exception:  # graph query during shutdown
             return []
 
     def _subscribe(self, topic: str, msgtype: str, best_effort: bool = False) -> None:
         if topic in self._subs or topic in self._skipped:
             return
-        cls = _message_class(msgtype)
+        cls = message_class(msgtype)
         if cls is None or msgtype not in jazzy_typestore().fielddefs:
             self._skipped.add(topic)
             self.get_logger().warning(
                 f"not recording {topic}: message type {msgtype} is not installed or not in the Jazzy typestore"
             )
             return
-        pubs = self._publisher_qos(topic)
-        if any(q.reliability == ReliabilityPolicy.BEST_EFFORT for q in pubs):
-            best_effort = True
-        transient = bool(pubs) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in pubs)
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=self.cfg.queue_depth,
-            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
-        )
+        pubs = [QosSpec.from_rosbag2(q) for q in self._publisher_qos(topic)]
+        best_effort = best_effort or any(q.best_effort for q in pubs)
+        transient = bool(pubs) and all(q.transient_local for q in pubs)
+        qos = qos_profile(QosSpec.make(best_effort=best_effort, transient_local=transient, depth=self.cfg.queue_depth))
 
         def on_message(data: bytes, info: Any, topic: str = topic, msgtype: str = msgtype) -> None:
             self._on_message(topic, msgtype, data, info)
@@ -177,7 +138,7 @@ class RecorderNode(Node):
     def _on_message(self, topic: str, msgtype: str, data: bytes, info: Any) -> None:
         now = self.get_clock().now().nanoseconds
         if not self.writer.has_topic(topic):
-            offered = [qos_profile_to_rosbag2(q) for q in self._publisher_qos(topic)]
+            offered = self._publisher_qos(topic)
             try:
                 self.writer.add_topic(topic, msgtype, offered or None)
             except BagWriterError as exc:

@@ -15,7 +15,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
-from der_ros.graph.orphans import stop_with_supervisor
+from der_ros.configuration import ConfigError
+from der_ros.nodes.orphans import stop_with_supervisor
 
 __all__ = ["BackgroundNode", "ManagedNode", "install_stop_handlers", "run_node"]
 
@@ -34,7 +35,7 @@ class ManagedNode(Protocol):
 def install_stop_handlers() -> dict[str, str]:
     """SIGINT/SIGTERM handlers that only record the signal's name under ``"reason"`` in the
     returned dict (the spin loop checks it), and the supervisor watch: SIGTERM when ``der graph``
-    dies, even by SIGKILL (:mod:`der_ros.graph.orphans`)."""
+    dies, even by SIGKILL (:mod:`der_ros.nodes.orphans`)."""
     stop: dict[str, str] = {}
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -56,8 +57,6 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
-
-    from der_ros.configuration import ConfigError
 
     args = list(sys.argv if argv is None else argv)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)

@@ -1,30 +1,7 @@
 """ROS-free replay core: uniform (DQN), prioritized (PER) and double experience replay (DER).
 
-``make_replay(cfg, obs_shape, obs_dtype, batch_size, seed)`` builds the buffer a
-:class:`ReplayConfig` asks for; every buffer has the :class:`ReplayBuffer` interface and
-returns :class:`Batch` tuples. ``load_replay(path)`` restores one saved with ``save``.
+``factory.make_replay(cfg, obs_shape, obs_dtype, batch_size, seed)`` builds the buffer a
+``config.ReplayConfig`` asks for; every buffer has the ``base.ReplayBuffer`` interface and
+returns ``base.Batch`` tuples; ``factory.load_replay(path)`` restores one saved with ``save``.
+Import-light on purpose (``config`` must not load numba): import the module you need.
 """
-
-from der_ros.replay.base import Batch, ReplayBuffer, load_replay
-from der_ros.replay.config import ReplayConfig
-from der_ros.replay.double_replay import DoubleReplay
-from der_ros.replay.factory import make_replay
-from der_ros.replay.prioritized import PrioritizedReplay
-from der_ros.replay.storage import ReplayMemoryError, RingStorage, storage_bytes
-from der_ros.replay.sum_tree import SumTree
-from der_ros.replay.uniform import UniformReplay
-
-__all__ = [
-    "Batch",
-    "ReplayBuffer",
-    "ReplayConfig",
-    "UniformReplay",
-    "PrioritizedReplay",
-    "DoubleReplay",
-    "SumTree",
-    "RingStorage",
-    "ReplayMemoryError",
-    "storage_bytes",
-    "make_replay",
-    "load_replay",
-]

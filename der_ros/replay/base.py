@@ -3,7 +3,9 @@
 A buffer is storage + sampler: :class:`~der_ros.replay.storage.RingStorage` holds the
 transitions, the subclass decides which slots a batch reads. Every kind has the same
 methods -- ``update_priorities`` is a no-op where it means nothing -- so the learner never
-special-cases the buffer it was given.
+special-cases the buffer it was given. The checks every kind applies at sample and update
+time live here too; the table of kinds and loading from disk are in
+:mod:`der_ros.replay.factory` (a base module does not know its subclasses).
 
 State is a flat ``dict[str, np.ndarray]`` (keys like ``"h1/obs"``), which :meth:`save`
 writes as one ``.npz`` without pickling anything (``allow_pickle=False`` on load).
@@ -20,12 +22,12 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-__all__ = ["Batch", "ReplayBuffer", "load_replay", "register", "STATE_FORMAT"]
+from der_ros.configuration import ConfigError
+
+__all__ = ["Batch", "ReplayBuffer", "STATE_FORMAT", "check_batch_size", "check_td_errors"]
 
 #: bumped whenever the on-disk layout changes incompatibly
 STATE_FORMAT = 1
-
-_REGISTRY: dict[str, type[ReplayBuffer]] = {}
 
 
 class Batch(NamedTuple):
@@ -42,10 +44,35 @@ class Batch(NamedTuple):
     source: np.ndarray  # (B,) uint8: 0 = main/H1, 1 = H2
 
 
-def register(cls: type[ReplayBuffer]) -> type[ReplayBuffer]:
-    """Class decorator: make ``cls`` loadable by :func:`load_replay` under ``cls.kind``."""
-    _REGISTRY[cls.kind] = cls
-    return cls
+def check_batch_size(batch_size: int, capacity: int, size: int) -> None:
+    """Sample-time guard shared by every buffer: 1 <= batch_size <= capacity and <= current size."""
+    if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ConfigError(f"batch_size = {batch_size!r}, expected an integer >= 1")
+    if batch_size > capacity:
+        raise ConfigError(f"batch_size = {batch_size}, expected <= replay capacity ({capacity})")
+    if batch_size > size:
+        raise ConfigError(
+            f"batch_size = {batch_size}, expected <= current replay size ({size}); "
+            "wait until the buffer holds at least one batch (learning_starts)"
+        )
+
+
+def check_td_errors(indices: np.ndarray, td_errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """int64 indices and float64 TD errors of the same length; non-finite TD errors raise ValueError."""
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    td = np.asarray(td_errors, dtype=np.float64).reshape(-1)
+    if idx.shape != td.shape:
+        raise ValueError(f"update_priorities: {idx.size} indices but {td.size} TD errors")
+    # one reduction instead of isfinite(...).all(): a nan/inf element makes the sum nan/inf
+    # (a sum that overflows from finite values only triggers the exact check below)
+    if td.size and not np.isfinite(td.sum()):
+        bad = np.flatnonzero(~np.isfinite(td))
+        if bad.size:
+            raise ValueError(
+                f"update_priorities: {bad.size} non-finite TD error(s), first at batch row {bad[0]}: {td[bad[0]]}; "
+                "the learner has diverged"
+            )
+    return idx, td
 
 
 def rng_state_to_array(rng: np.random.Generator) -> np.ndarray:
@@ -119,7 +146,13 @@ class ReplayBuffer(ABC):
     # ------------------------------------------------------------------ state
     @abstractmethod
     def _ctor_kwargs(self) -> dict[str, Any]:
-        """JSON-able constructor arguments; :func:`load_replay` rebuilds the buffer from them."""
+        """JSON-able constructor arguments, saved with the state (``"ctor"``)."""
+
+    @classmethod
+    def from_ctor_kwargs(cls, kwargs: dict[str, Any]) -> ReplayBuffer:
+        """An empty buffer built from saved :meth:`_ctor_kwargs` (memory was checked when it was
+        first built), ready for :meth:`load_state_dict`."""
+        return cls(**kwargs, check_memory=False)
 
     @abstractmethod
     def _arrays(self) -> dict[str, np.ndarray]:
@@ -196,19 +229,3 @@ class ReplayBuffer(ABC):
             except FileNotFoundError:
                 pass
             raise
-
-
-def load_replay(path: str | os.PathLike[str]) -> ReplayBuffer:
-    """Rebuild a buffer written by :meth:`ReplayBuffer.save`; sampling continues identically."""
-    # the import registers the concrete classes
-    from der_ros.replay import double_replay, prioritized, uniform  # noqa: F401
-
-    with np.load(Path(path), allow_pickle=False) as data:
-        state = {k: data[k] for k in data.files}
-    kind = str(state["kind"][()])
-    if kind not in _REGISTRY:
-        raise ValueError(f"{path}: unknown replay kind {kind!r}; expected one of {sorted(_REGISTRY)}")
-    ctor = json.loads(str(state["ctor"][()]))
-    buf = _REGISTRY[kind](**ctor, check_memory=False)
-    buf.load_state_dict(state)
-    return buf

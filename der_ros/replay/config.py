@@ -6,6 +6,7 @@ by :func:`der_ros.replay.factory.make_replay`, which knows the batch size.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from der_ros.configuration import ConfigError, param
@@ -91,9 +92,15 @@ class ReplayConfig:
     )
 
     def check(self) -> None:
-        """Cross-field rules that do not need the batch size."""
+        """Cross-field rules of H2's sizes (checked again by the factory once the batch size fills
+        in the defaults)."""
         if self.h2_capacity is not None and self.h2_min_size is not None and self.h2_min_size > self.h2_capacity:
             raise ConfigError(
                 f"h2_min_size = {self.h2_min_size}, expected <= h2_capacity ({self.h2_capacity}); "
                 "H2 would never become ready"
+            )
+        if self.h2_capacity is not None and self.max_log_weight > MAX_LOG_WEIGHT_LIMIT - math.log(self.h2_capacity):
+            raise ConfigError(
+                f"max_log_weight = {self.max_log_weight}, expected <= {MAX_LOG_WEIGHT_LIMIT} - ln(h2_capacity) "
+                f"= {MAX_LOG_WEIGHT_LIMIT - math.log(self.h2_capacity):.1f} (the H2 weight sum must stay finite)"
             )

@@ -72,21 +72,20 @@ sampled is ignored by :meth:`update_priorities` instead of touching the wrong tr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from der_ros.configuration import ConfigError
-from der_ros.replay._kernels import dense_remove, der_plan
-from der_ros.replay.base import Batch, ReplayBuffer, register
-from der_ros.replay.config import MAX_LOG_WEIGHT_LIMIT
-from der_ros.replay.prioritized import check_td_errors
+from der_ros.configuration import ConfigError, validate
+from der_ros.replay.base import Batch, ReplayBuffer, check_batch_size, check_td_errors
+from der_ros.replay.config import ReplayConfig
+from der_ros.replay.double_replay_kernels import dense_remove, der_plan
 from der_ros.replay.storage import RingStorage, describe, storage_bytes
 from der_ros.replay.storage import check_memory as _check_memory
 from der_ros.replay.sum_tree import SumTree
-from der_ros.replay.uniform import check_batch_size
 
 __all__ = ["DoubleReplay", "h2_split"]
 
@@ -103,62 +102,45 @@ def h2_split(lam: float, batch_size: int) -> int:
     return int(math.floor(lam * batch_size + 0.5))
 
 
-@register
 class DoubleReplay(ReplayBuffer):
-    """DER: H1 (uniform, N1) + H2 (weighted by p, N2) with promotion and eq. 3 updates."""
+    """DER: H1 (uniform, N1) + H2 (weighted by p, N2) with promotion and eq. 3 updates.
+
+    ``cfg`` is a ``kind='der'`` :class:`ReplayConfig` with ``h2_capacity`` and ``h2_min_size``
+    resolved (:func:`der_ros.replay.factory.make_replay` fills in the batch-size defaults); it is
+    validated once here, by the same rules as a config file (field ranges and ``check()``).
+    """
 
     kind = "der"
 
     def __init__(
         self,
-        capacity: int,
-        h2_capacity: int,
+        cfg: ReplayConfig,
         obs_shape: Sequence[int],
         obs_dtype: np.dtype | str | type = np.float32,
-        lam: float = 0.5,
-        h2_min_size: int = 1,
-        p_promote: float = 1.0,
-        promote_mode: str = "move",
-        h2_eviction: str = "fifo",
-        eq3_sum: str = "h2",
-        max_log_weight: float = 50.0,
         seed: int | None = 0,
         check_memory: bool = True,
         available_bytes: int | None = None,
     ) -> None:
-        for name, value in (("capacity", capacity), ("h2_capacity", h2_capacity), ("h2_min_size", h2_min_size)):
-            if int(value) < 1:
-                raise ConfigError(f"{name} = {value}, expected >= 1")
-        if h2_min_size > h2_capacity:
-            raise ConfigError(f"h2_min_size = {h2_min_size}, expected <= h2_capacity ({h2_capacity})")
-        for name, value in (("lam", lam), ("p_promote", p_promote)):
-            if not 0.0 <= value <= 1.0:
-                raise ConfigError(f"{name} = {value}, expected >= 0.0 and <= 1.0")
-        for name, value, choices in (
-            ("promote_mode", promote_mode, ("move", "copy")),
-            ("h2_eviction", h2_eviction, ("fifo", "min_weight")),
-            ("eq3_sum", eq3_sum, ("h2", "batch")),
-        ):
-            if value not in choices:
-                raise ConfigError(f"{name} = {value!r}, expected one of {', '.join(map(repr, choices))}")
-        if not 0.0 < max_log_weight <= MAX_LOG_WEIGHT_LIMIT - math.log(h2_capacity):
-            raise ConfigError(
-                f"max_log_weight = {max_log_weight}, expected > 0 and <= {MAX_LOG_WEIGHT_LIMIT} - ln(h2_capacity) "
-                f"= {MAX_LOG_WEIGHT_LIMIT - math.log(h2_capacity):.1f} (the H2 weight sum must stay finite)"
-            )
+        for name in ("h2_capacity", "h2_min_size"):
+            if getattr(cfg, name) is None:
+                raise ConfigError(f"replay: {name} = None; DoubleReplay needs it resolved (make_replay does that)")
+        cfg = validate(dataclasses.replace(cfg), "replay")
+        if cfg.kind != self.kind:
+            raise ConfigError(f"replay: kind = {cfg.kind!r}, expected {self.kind!r} for DoubleReplay")
+        capacity, h2_capacity = int(cfg.capacity), int(cfg.h2_capacity)
         if check_memory:
             needed = storage_bytes(capacity, obs_shape, obs_dtype) + storage_bytes(h2_capacity, obs_shape, obs_dtype)
             what = f"H1 {describe(capacity, obs_shape, obs_dtype)} + H2 (h2_capacity={h2_capacity})"
             _check_memory(needed, what, available_bytes)
-        self.capacity = int(capacity)
-        self.h2_capacity = int(h2_capacity)
-        self.lam = float(lam)
-        self.h2_min_size = int(h2_min_size)
-        self.p_promote = float(p_promote)
-        self.promote_mode = promote_mode
-        self.h2_eviction = h2_eviction
-        self.eq3_sum = eq3_sum
-        self.max_log_weight = float(max_log_weight)
+        self.capacity = capacity
+        self.h2_capacity = h2_capacity
+        self.lam = float(cfg.lam)
+        self.h2_min_size = int(cfg.h2_min_size)
+        self.p_promote = float(cfg.p_promote)
+        self.promote_mode = cfg.promote_mode
+        self.h2_eviction = cfg.h2_eviction
+        self.eq3_sum = cfg.eq3_sum
+        self.max_log_weight = float(cfg.max_log_weight)
         self._rng = np.random.default_rng(seed)
 
         n1, n2 = self.capacity, self.h2_capacity
@@ -177,7 +159,7 @@ class DoubleReplay(ReplayBuffer):
         self.h2_logw = np.zeros(n2, dtype=np.float64)
         self.h2_gen = self._gen[n1:]
         self.h2_size = 0
-        # scratch for de-duplicating the rows of a batch in O(B) (see _kernels.der_plan)
+        # scratch for de-duplicating the rows of a batch in O(B) (see double_replay_kernels.der_plan)
         self._h1_mark = np.zeros(n1, dtype=np.int64)
         self._h2_mark = np.zeros(n2, dtype=np.int64)
         #: transitions promoted H1 -> H2 so far, and the H2 share of the last batch
@@ -327,7 +309,24 @@ class DoubleReplay(ReplayBuffer):
             "replay/promoted": float(self.promoted),
         }
 
+    def set_lam(self, lam: float) -> None:
+        """Change lambda while learning (the agent node's mutable ``replay.lam``)."""
+        if not 0.0 <= lam <= 1.0:
+            raise ConfigError(f"replay: lam = {lam!r}, expected >= 0.0 and <= 1.0")
+        self.lam = float(lam)
+
     # ------------------------------------------------------------------ state
+    def config(self) -> ReplayConfig:
+        """The (resolved) :class:`ReplayConfig` this buffer runs with."""
+        kw = self._ctor_kwargs()
+        return ReplayConfig(kind=self.kind, **{k: v for k, v in kw.items() if k not in ("obs_shape", "obs_dtype")})
+
+    @classmethod
+    def from_ctor_kwargs(cls, kwargs: dict[str, Any]) -> DoubleReplay:  # noqa: D102
+        kw = dict(kwargs)
+        obs_shape, obs_dtype = kw.pop("obs_shape"), kw.pop("obs_dtype")
+        return cls(ReplayConfig(kind=cls.kind, **kw), obs_shape, obs_dtype, check_memory=False)
+
     def _ctor_kwargs(self) -> dict[str, Any]:
         return {
             "capacity": self.capacity,

@@ -1,13 +1,19 @@
-"""make_replay: build the buffer a :class:`ReplayConfig` describes, for a given batch size.
+"""The table of replay kinds: build the buffer a :class:`ReplayConfig` describes, or load a saved one.
 
 This is where the batch-size dependent defaults of DER are resolved (the paper's
 "N_2 = batch size x 100" and "H_2 ... an adequate amount of transitions to train" =
-one batch) and where the rules that need the batch size are checked.
+one batch) and where the rules that need the batch size are checked. The kinds are listed
+here, in :data:`REPLAY_KINDS`, rather than registered by the classes on import: the base
+module stays free of its subclasses (as TorchRL keeps ``samplers/base.py`` free of strategies).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import os
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -18,7 +24,10 @@ from der_ros.replay.double_replay import DoubleReplay
 from der_ros.replay.prioritized import PrioritizedReplay
 from der_ros.replay.uniform import UniformReplay
 
-__all__ = ["make_replay", "resolve_h2"]
+__all__ = ["REPLAY_KINDS", "make_replay", "load_replay", "resolve_h2"]
+
+#: ``ReplayConfig.kind`` (also the ``kind`` saved with a buffer's state) -> class
+REPLAY_KINDS: dict[str, type[ReplayBuffer]] = {cls.kind: cls for cls in (UniformReplay, PrioritizedReplay, DoubleReplay)}
 
 
 def resolve_h2(cfg: ReplayConfig, batch_size: int) -> tuple[int, int]:
@@ -58,28 +67,20 @@ def make_replay(
             seed=seed,
             available_bytes=available_bytes,
         )
-    if cfg.kind == "der":
-        n2, k = resolve_h2(cfg, batch_size)
-        if batch_size > n2:
-            raise ConfigError(f"replay: batch_size = {batch_size}, expected <= h2_capacity ({n2})")
-        if k > n2:
-            raise ConfigError(f"replay: h2_min_size = {k}, expected <= h2_capacity ({n2}); H2 would never be ready")
-        try:
-            return DoubleReplay(
-                cfg.capacity,
-                n2,
-                obs_shape,
-                obs_dtype,
-                lam=cfg.lam,
-                h2_min_size=k,
-                p_promote=cfg.p_promote,
-                promote_mode=cfg.promote_mode,
-                h2_eviction=cfg.h2_eviction,
-                eq3_sum=cfg.eq3_sum,
-                max_log_weight=cfg.max_log_weight,
-                seed=seed,
-                available_bytes=available_bytes,
-            )
-        except ConfigError as exc:
-            raise type(exc)(f"replay: {exc}") from None
-    raise ConfigError(f"replay: kind = {cfg.kind!r}, expected one of 'uniform', 'per', 'der'")  # pragma: no cover
+    n2, k = resolve_h2(cfg, batch_size)
+    if batch_size > n2:
+        raise ConfigError(f"replay: batch_size = {batch_size}, expected <= h2_capacity ({n2})")
+    resolved = dataclasses.replace(cfg, h2_capacity=n2, h2_min_size=k)
+    return DoubleReplay(resolved, obs_shape, obs_dtype, seed=seed, available_bytes=available_bytes)
+
+
+def load_replay(path: str | os.PathLike[str]) -> ReplayBuffer:
+    """Rebuild a buffer written by :meth:`ReplayBuffer.save`; sampling continues identically."""
+    with np.load(Path(path), allow_pickle=False) as data:
+        state = {k: data[k] for k in data.files}
+    kind = str(state["kind"][()])
+    if kind not in REPLAY_KINDS:
+        raise ValueError(f"{path}: unknown replay kind {kind!r}; expected one of {sorted(REPLAY_KINDS)}")
+    buf = REPLAY_KINDS[kind].from_ctor_kwargs(json.loads(str(state["ctor"][()])))
+    buf.load_state_dict(state)
+    return buf

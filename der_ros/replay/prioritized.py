@@ -22,36 +22,16 @@ from typing import Any
 import numpy as np
 
 from der_ros.configuration import ConfigError
-from der_ros.replay.base import Batch, ReplayBuffer, register
+from der_ros.replay.base import Batch, ReplayBuffer, check_batch_size, check_td_errors
 from der_ros.replay.storage import RingStorage, check_storage_memory
 from der_ros.replay.sum_tree import SumTree
-from der_ros.replay.uniform import check_batch_size
 
-__all__ = ["PrioritizedReplay", "MAX_PRIORITY", "check_td_errors"]
+__all__ = ["PrioritizedReplay", "MAX_PRIORITY"]
 
 #: priorities are clipped here so a sum of up to 1e100 of them cannot overflow float64
 MAX_PRIORITY = 1e200
 
 
-def check_td_errors(indices: np.ndarray, td_errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """int64 indices and float64 TD errors of the same length; non-finite TD errors raise ValueError."""
-    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-    td = np.asarray(td_errors, dtype=np.float64).reshape(-1)
-    if idx.shape != td.shape:
-        raise ValueError(f"update_priorities: {idx.size} indices but {td.size} TD errors")
-    # one reduction instead of isfinite(...).all(): a nan/inf element makes the sum nan/inf
-    # (a sum that overflows from finite values only triggers the exact check below)
-    if td.size and not np.isfinite(td.sum()):
-        bad = np.flatnonzero(~np.isfinite(td))
-        if bad.size:
-            raise ValueError(
-                f"update_priorities: {bad.size} non-finite TD error(s), first at batch row {bad[0]}: {td[bad[0]]}; "
-                "the learner has diverged"
-            )
-    return idx, td
-
-
-@register
 class PrioritizedReplay(ReplayBuffer):
     """Proportional PER over the last ``capacity`` transitions."""
 

@@ -14,7 +14,7 @@ one prefix sum over the R roots plus one binary search per sample, which removes
 ``log2 R`` levels from both the descent and every update. The descent and the updates
 run as compiled numba kernels when numba is installed and as vectorised numpy (all B
 samples one level at a time) otherwise, with bit-identical results
-(:mod:`der_ros.replay._kernels`).
+(:mod:`der_ros.replay.sum_tree_kernels`).
 
 Sampling (:meth:`sample`) is stratified as in Schaul et al. (2015): the range
 ``[0, total)`` is cut into B equal segments and one value is drawn in each. Every
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from der_ros.replay._kernels import HAVE_NUMBA, tree_find, tree_propagate, tree_sample
+from der_ros.replay.sum_tree_kernels import HAVE_NUMBA, tree_find, tree_propagate, tree_sample
 
 __all__ = ["SumTree"]
 
@@ -42,7 +42,7 @@ class SumTree:
     """Sum tree over ``capacity`` non-negative float64 leaves (all start at 0).
 
     All levels live in one flat array ``nodes`` (level d at ``offsets[d]``), so the
-    compiled kernels of :mod:`der_ros.replay._kernels` can walk it; ``levels`` are views.
+    compiled kernels of :mod:`der_ros.replay.sum_tree_kernels` can walk it; ``levels`` are views.
     """
 
     def __init__(self, capacity: int, root_width: int = 1024, use_numba: bool | None = None) -> None:

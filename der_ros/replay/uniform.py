@@ -9,26 +9,12 @@ from typing import Any
 import numpy as np
 
 from der_ros.configuration import ConfigError
-from der_ros.replay.base import Batch, ReplayBuffer, register
+from der_ros.replay.base import Batch, ReplayBuffer, check_batch_size
 from der_ros.replay.storage import RingStorage, check_storage_memory
 
-__all__ = ["UniformReplay", "check_batch_size"]
+__all__ = ["UniformReplay"]
 
 
-def check_batch_size(batch_size: int, capacity: int, size: int) -> None:
-    """Sample-time guard shared by every buffer: 1 <= batch_size <= capacity and <= current size."""
-    if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
-        raise ConfigError(f"batch_size = {batch_size!r}, expected an integer >= 1")
-    if batch_size > capacity:
-        raise ConfigError(f"batch_size = {batch_size}, expected <= replay capacity ({capacity})")
-    if batch_size > size:
-        raise ConfigError(
-            f"batch_size = {batch_size}, expected <= current replay size ({size}); "
-            "wait until the buffer holds at least one batch (learning_starts)"
-        )
-
-
-@register
 class UniformReplay(ReplayBuffer):
     """Uniform sampling with replacement over the last ``capacity`` transitions."""
 

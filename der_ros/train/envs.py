@@ -23,6 +23,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+import sumo_bridge  # noqa: F401  (registers the der_ros/* SUMO ids with gymnasium)
+
 __all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife"]
 
 log = logging.getLogger(__name__)
@@ -112,11 +114,9 @@ def make_env(
     """Build one environment for ``env_id`` (not yet reset; pass ``seed`` to the first ``reset``).
 
     The action space is seeded with ``seed``. Atari options are ignored for non-Atari ids;
-    ``make_kwargs`` go to ``gymnasium.make``. Ids starting with ``der_ros/`` import
-    ``sumo_bridge``, which registers the SUMO lane-change environments.
+    ``make_kwargs`` go to ``gymnasium.make``. Ids starting with ``der_ros/`` are the SUMO
+    lane-change environments that ``sumo_bridge`` registers (imported with this module).
     """
-    if env_id.startswith("der_ros/"):
-        import sumo_bridge  # noqa: F401  (registers der_ros/* ids)
     time_limit = {"max_episode_steps": max_episode_steps} if max_episode_steps is not None else {}
     if is_atari_id(env_id):
         _register_ale()

@@ -38,7 +38,6 @@ import numpy as np
 import torch
 
 from der_ros.agent.dqn import DQNAgent, read_checkpoint
-from der_ros.experiments.stats import max_moving_average
 from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.envs import make_env_from_config, obs_spec
 from der_ros.train.evaluation import (
@@ -54,6 +53,7 @@ from der_ros.train.evaluation import (
     write_eval_row,
 )
 from der_ros.train.metrics import MeanAccumulator, MetricsWriter
+from der_ros.train.scores import max_moving_average
 
 __all__ = ["RunSummary", "train", "default_run_dir", "replay_label"]
 

@@ -1,97 +1,22 @@
-"""Compiled inner loops of the sum tree (numba), with the numpy versions as fallback.
+"""DER's inner loops (paper eq. 3 and the H1 -> H2 promotion), compiled with numba when available.
 
-The compiled and numpy versions perform the same float64 operations in the same order
-(sequential prefix sum over the roots, ``u - left`` on each right turn, parents as
-``left + right``), so they give bit-identical trees and indices: a buffer saved with one
-loads and continues identically with the other. ``test_replay.py`` checks this.
-
-numba is used when importable and ``DER_ROS_NO_NUMBA`` is unset; kernels are compiled on
-first use and cached next to this file (about a second, once).
+Split from the sum-tree kernels because they implement :class:`~der_ros.replay.double_replay.DoubleReplay`'s
+rules, not the tree's: :func:`der_plan` checks the batch's handles, de-duplicates the rows and
+applies eq. 3 to the H2 rows in one pass; :func:`dense_remove` takes promoted ("moved")
+transitions out of H1's dense list of live slots. Each has a numpy fallback that gives the
+same result (``test_replay.py`` checks the two agree bit for bit).
 """
 
 from __future__ import annotations
 
-import logging
-import os
-
 import numpy as np
 
-log = logging.getLogger(__name__)
+from der_ros.replay._numba import HAVE_NUMBA, jit
 
-__all__ = ["HAVE_NUMBA", "tree_find", "tree_sample", "tree_propagate", "der_plan", "dense_remove"]
-
-_nb = None
-if not os.environ.get("DER_ROS_NO_NUMBA"):
-    try:
-        import numba as _nb  # type: ignore[no-redef]
-    except ImportError:  # pragma: no cover - numba is in requirements.txt
-        log.info("numba not available; the replay sum tree uses its numpy implementation")
-
-HAVE_NUMBA = _nb is not None
-
-
-def _find_py(nodes, offsets, n_roots, height, u, limit, out):  # pragma: no cover - compiled
-    """Per sample: search the root prefix sums, then descend ``height`` binary levels."""
-    cum = np.empty(n_roots, dtype=np.float64)
-    acc = 0.0
-    for r in range(n_roots):
-        acc += nodes[r]
-        cum[r] = acc
-    return _descend(nodes, offsets, n_roots, height, cum, u, limit, out)
-
-
-def _sample_py(nodes, offsets, n_roots, height, r, limit, out):  # pragma: no cover - compiled
-    """Stratified draws: u_i = (i + r_i) * total / n, clamped below total, then descend."""
-    cum = np.empty(n_roots, dtype=np.float64)
-    acc = 0.0
-    for k in range(n_roots):
-        acc += nodes[k]
-        cum[k] = acc
-    total = cum[n_roots - 1]
-    n = r.shape[0]
-    seg = total / n
-    top = np.nextafter(total, 0.0)
-    u = np.empty(n, dtype=np.float64)
-    for i in range(n):
-        u[i] = min((i + r[i]) * seg, top)
-    return _descend(nodes, offsets, n_roots, height, cum, u, limit, out)
-
-
-def _descend_py(nodes, offsets, n_roots, height, cum, u, limit, out):  # pragma: no cover - compiled
-    for i in range(u.shape[0]):
-        x = u[i]
-        # first root with cum > x (np.searchsorted side='right')
-        lo, hi = 0, n_roots
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if cum[mid] > x:
-                hi = mid
-            else:
-                lo = mid + 1
-        j = min(lo, n_roots - 1)
-        x = x - (cum[j] - nodes[j])
-        for d in range(1, height + 1):
-            j <<= 1
-            left = nodes[offsets[d] + j]
-            if x >= left:
-                x -= left
-                j += 1
-        out[i] = min(j, limit - 1)
-    return out
-
-
-def _propagate_py(nodes, offsets, height, idx):  # pragma: no cover - compiled
-    """Recompute every ancestor of the leaves ``idx`` as left + right."""
-    for i in range(idx.shape[0]):
-        j = idx[i]
-        for d in range(height, 0, -1):
-            j >>= 1
-            base = offsets[d] + 2 * j
-            nodes[offsets[d - 1] + j] = nodes[base] + nodes[base + 1]
+__all__ = ["der_plan", "dense_remove"]
 
 
 _SLOT_MASK = (1 << 32) - 1
-_SRC_BIT = 1 << 32
 
 
 def _der_plan_py(idx, absd, n1cap, h1_gen, h1_pos, h2_gen, h2_size, h1_mark, h2_mark, eq3_batch, s2, lw2, h2_logw, s1, d1):  # pragma: no cover - compiled
@@ -188,69 +113,8 @@ def _dense_remove_py(live, pos, gen, slots, size, gen_mask):  # pragma: no cover
 
 
 if HAVE_NUMBA:
-    _jit = _nb.njit(cache=True, nogil=True, boundscheck=False)
-    _descend = _jit(_descend_py)
-    _find_nb = _jit(_find_py)
-    _sample_nb = _jit(_sample_py)
-    _propagate_nb = _jit(_propagate_py)
-    _der_plan_nb = _jit(_der_plan_py)
-    _dense_remove_nb = _jit(_dense_remove_py)
-
-
-def tree_find(
-    nodes: np.ndarray, offsets: np.ndarray, n_roots: int, height: int, u: np.ndarray, limit: int, use_numba: bool
-) -> np.ndarray:
-    """Leaf index for each ``u`` (clamped below ``limit``); see :class:`SumTree`."""
-    out = np.empty(u.shape[0], dtype=np.int64)
-    if use_numba:
-        return _find_nb(nodes, offsets, n_roots, height, u, limit, out)
-    return _find_np(nodes, offsets, n_roots, height, np.cumsum(nodes[:n_roots]), u, limit, out)
-
-
-def _find_np(nodes, offsets, n_roots, height, cum, u, limit, out):
-    roots = nodes[:n_roots]
-    j = np.searchsorted(cum, u, side="right")
-    np.minimum(j, n_roots - 1, out=j)
-    x = u - (cum.take(j) - roots.take(j))
-    for d in range(1, height + 1):
-        level = nodes[offsets[d] : offsets[d] + (n_roots << d)]
-        j <<= 1
-        left = level.take(j)
-        right = x >= left
-        x -= left * right
-        j += right
-    np.minimum(j, limit - 1, out=out)
-    return out
-
-
-def tree_sample(
-    nodes: np.ndarray, offsets: np.ndarray, n_roots: int, height: int, r: np.ndarray, limit: int, use_numba: bool
-) -> np.ndarray:
-    """Stratified proportional draws: one in each of ``len(r)`` equal segments of [0, total),
-    at offset ``r`` (uniform [0, 1) numbers) inside its segment."""
-    out = np.empty(r.shape[0], dtype=np.int64)
-    if use_numba:
-        return _sample_nb(nodes, offsets, n_roots, height, r, limit, out)
-    cum = np.cumsum(nodes[:n_roots])
-    total = cum[-1]
-    u = np.arange(r.shape[0], dtype=np.float64)
-    u += r
-    u *= total / r.shape[0]
-    np.minimum(u, np.nextafter(total, 0.0), out=u)
-    return _find_np(nodes, offsets, n_roots, height, cum, u, limit, out)
-
-
-def tree_propagate(nodes: np.ndarray, offsets: np.ndarray, n_roots: int, height: int, idx: np.ndarray,
-                   use_numba: bool) -> None:
-    """Recompute the ancestors of leaves ``idx`` (int64) after the leaves were written."""
-    if use_numba:
-        _propagate_nb(nodes, offsets, height, idx)
-        return
-    for d in range(height, 0, -1):
-        idx = idx >> 1
-        child = nodes[offsets[d] : offsets[d] + (n_roots << d)]
-        pair = child.reshape(-1, 2).take(idx, axis=0)
-        nodes[offsets[d - 1] + idx] = pair[:, 0] + pair[:, 1]
+    _der_plan_nb = jit(_der_plan_py)
+    _dense_remove_nb = jit(_dense_remove_py)
 
 
 def der_plan(

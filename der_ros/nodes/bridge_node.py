@@ -1,7 +1,7 @@
 """``bridge_node``: the SUMO lane-change simulation as a ROS 2 node (rclpy adapter).
 
 Owns one :class:`sumo_bridge.lane_change_env.LaneChangeEnv` and speaks the "ROS 2 graph
-contract" of docs/architecture.md: every step it publishes ``/clock``, ``reward`` (before
+contract" (:mod:`der_ros.contract`): every step it publishes ``/clock``, ``reward`` (before
 ``state``), ``state`` (PointCloud2 of the points), ``ego/odom`` and, on episode start/end,
 ``episode``; it applies the actions arriving on ``lane_change_cmd``.
 
@@ -33,70 +33,48 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RclClock
 from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
-from std_msgs.msg import Header
 
-from der_ros.configuration import param
+from der_ros.contract import (
+    BRIDGE_DIAGNOSTICS,
+    BRIDGE_STATUS,
+    CLOCK,
+    COMMAND,
+    EPISODE,
+    EPISODE_COLLISION,
+    EPISODE_ENDS,
+    EPISODE_START,
+    EPISODE_TIME_LIMIT,
+    ODOM,
+    REWARD,
+    STATE,
+    episode_values,
+    parse_command,
+)
+from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
+from der_ros.nodes import node_configs
+from der_ros.nodes.node_configs import BridgeNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
+from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.lockstep import CommandGate, Verdict
 from sumo_bridge.observation import field_index
 
-__all__ = ["BridgeNodeConfig", "BridgeNode", "LatencyStats", "main", "parameter_sections", "qos_profiles"]
+__all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
 _NS = 1_000_000_000
-
-
-@dataclass
-class BridgeNodeConfig:
-    """Parameters of the bridge node itself (top-level ROS parameter names)."""
-
-    mode: str = param("lockstep", "stepping mode: 'lockstep' (wait for each command) or 'free_run' (timer)",
-                      choices=("lockstep", "free_run"))
-    command_timeout: float = param(
-        2.0, "lockstep: seconds to wait for the command answering a state before applying the default action "
-        "(0 = keep lane; the next reward's frame_id says applied_action=0, so the learner stores what was applied); "
-        "keep it above the agent's longest pause (checkpoint save)", low=0.0, low_inclusive=False)
-    real_time_factor: float = param(
-        1.0, "free_run: simulated seconds per wall-clock second", low=0.0, low_inclusive=False)
-    max_steps: int = param(0, "simulation steps before the node exits 0 (0 = unlimited)", low=0)
-    wait_for_agent: float = param(
-        30.0, "seconds to wait at start-up until state/reward have a subscriber and lane_change_cmd a publisher "
-        "(0 = start at once)", low=0.0)
-    min_subscribers: int = param(
-        1, "start-up: subscribers that state and reward must each have before the first step (der graph sets 2: "
-        "agent + recorder, so the bag starts with the first state)", low=1)
-    diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
-    map_frame: str = param("map", "frame_id of ego/odom")
-
-
-def qos_profiles() -> dict[str, QoSProfile]:
-    """The QoS of every topic of the graph contract (shared with the agent and recorder nodes)."""
-    reliable = ReliabilityPolicy.RELIABLE
-    return {
-        "clock": QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT),
-        "state": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-        "reward": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-        "episode": QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-        "lane_change_cmd": QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-        "ego/odom": qos_profile_sensor_data,
-        "agent/metrics": QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-        "bridge/diagnostics": QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=reliable),
-    }
 
 
 class LatencyStats:
@@ -123,9 +101,7 @@ class LatencyStats:
 
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
-    from sumo_bridge.scenario import ScenarioConfig
-
-    return {"": BridgeNodeConfig(), "scenario": ScenarioConfig()}
+    return node_configs.parameter_sections("bridge_node")
 
 
 class BridgeNode(Node):
@@ -137,25 +113,20 @@ class BridgeNode(Node):
         self._params = ConfigParameters(self, parameter_sections())
         self.cfg: BridgeNodeConfig = self._params.get("")
         self.scenario = self._params.get("scenario")
-        if env_factory is None:
-            from sumo_bridge.lane_change_env import LaneChangeEnv
-
-            env_factory = LaneChangeEnv
-        self.env = env_factory(self.scenario)
+        self.env = (env_factory or LaneChangeEnv)(self.scenario)
         self.step_ns = int(round(float(self.env.step_seconds) * _NS))
         self.n_actions = int(getattr(getattr(self.env, "action_space", None), "n", 3))
         self.gate = CommandGate(n_actions=self.n_actions)
         self._speed_col = field_index("speed")
 
-        q = qos_profiles()
-        self.pub_clock = self.create_publisher(Clock, "/clock", q["clock"])
-        self.pub_reward = self.create_publisher(Vector3Stamped, "reward", q["reward"])
-        self.pub_state = self.create_publisher(PointCloud2, "state", q["state"])
-        self.pub_odom = self.create_publisher(Odometry, "ego/odom", q["ego/odom"])
-        self.pub_episode = self.create_publisher(DiagnosticArray, "episode", q["episode"])
-        self.pub_diag = self.create_publisher(DiagnosticArray, "bridge/diagnostics", q["bridge/diagnostics"])
+        self.pub_clock = self.create_publisher(Clock, CLOCK, topic_qos(CLOCK))
+        self.pub_reward = self.create_publisher(Vector3Stamped, REWARD, topic_qos(REWARD))
+        self.pub_state = self.create_publisher(PointCloud2, STATE, topic_qos(STATE))
+        self.pub_odom = self.create_publisher(Odometry, ODOM, topic_qos(ODOM))
+        self.pub_episode = self.create_publisher(DiagnosticArray, EPISODE, topic_qos(EPISODE))
+        self.pub_diag = self.create_publisher(DiagnosticArray, BRIDGE_DIAGNOSTICS, topic_qos(BRIDGE_DIAGNOSTICS))
         # Two-argument callback: rclpy passes the MessageInfo (timestamps, sequence numbers).
-        self.create_subscription(Joy, "lane_change_cmd", self._on_command, q["lane_change_cmd"])
+        self.create_subscription(Joy, COMMAND, self._on_command, topic_qos(COMMAND))
 
         steady = RclClock(clock_type=ClockType.STEADY_TIME)
         self._timeout_timer = self.create_timer(self.cfg.command_timeout, self._on_timeout, clock=steady,
@@ -175,7 +146,7 @@ class BridgeNode(Node):
         self._lane: int | None = None
         self._sent_at: dict[int, int] = {}
         self.latency = LatencyStats()
-        self.events: dict[str, int] = {"success": 0, "collision": 0, "time_limit": 0}
+        self.events: dict[str, int] = dict.fromkeys(EPISODE_ENDS, 0)
         self._t_start = time.perf_counter()
         self._busy_s = 0.0
         self.get_logger().info(
@@ -185,9 +156,9 @@ class BridgeNode(Node):
     # -- start-up --------------------------------------------------------------------------------
     def _maybe_start(self) -> None:
         ready = (
-            self.count_subscribers("state") >= self.cfg.min_subscribers
-            and self.count_subscribers("reward") >= self.cfg.min_subscribers
-            and self.count_publishers("lane_change_cmd") > 0
+            self.count_subscribers(STATE) >= self.cfg.min_subscribers
+            and self.count_subscribers(REWARD) >= self.cfg.min_subscribers
+            and self.count_publishers(COMMAND) > 0
         )
         # Seen from here, a subscriber is matched as soon as we discovered it; the subscriber may
         # match our writers a moment later, and a first state sent before that would be lost. So
@@ -220,7 +191,7 @@ class BridgeNode(Node):
         self._ep_speed_sum = 0.0
         self._lane = info.get("lane")
         stamp = self._stamp()
-        self.pub_episode.publish(mc.make_episode_event(stamp, "start", {"episode": self.episode, "steps": 0}))
+        self.pub_episode.publish(mc.make_episode_event(stamp, EPISODE_START, episode_values(self.episode, 0, ret=None)))
         self._publish_step(stamp, 0.0, False, False, info, None)
 
     def _publish_step(
@@ -257,15 +228,10 @@ class BridgeNode(Node):
         self._publish_step(stamp, float(reward), bool(terminated), bool(truncated), info, int(action))
         done = self.cfg.max_steps > 0 and self.sim_steps >= self.cfg.max_steps
         if terminated or truncated:
-            event = info.get("event") or ("time_limit" if truncated else "collision")
+            event = info.get("event") or (EPISODE_TIME_LIMIT if truncated else EPISODE_COLLISION)
             self.events[event] = self.events.get(event, 0) + 1
-            values = {
-                "episode": self.episode,
-                "steps": self._ep_steps,
-                "return": self._ep_return,
-                "lane_changes": self._ep_lane_changes,
-                "mean_speed": self._ep_speed_sum / max(self._ep_steps, 1),  # traffic mean speed over the episode
-            }
+            values = episode_values(self.episode, self._ep_steps, self._ep_return, self._ep_lane_changes,
+                                    self._ep_speed_sum / max(self._ep_steps, 1))  # traffic mean speed over the episode
             self.pub_episode.publish(mc.make_episode_event(stamp, event, values))
             if not done:
                 self.k += 1
@@ -287,7 +253,7 @@ class BridgeNode(Node):
         del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
         if self.finished:
             return
-        stamp, buttons, axes, sender = mc.parse_command(msg)
+        stamp, buttons, axes, sender = parse_command(msg)
         verdict, action = self.gate.offer(stamp, buttons, axes, sender)
         if verdict is not Verdict.ACCEPTED:
             self.get_logger().warning(
@@ -340,13 +306,10 @@ class BridgeNode(Node):
         return out
 
     def _publish_diagnostics(self) -> None:
-        values = [KeyValue(key=k, value=repr(v)) for k, v in self.summary().items()]
-        level = DiagnosticStatus.OK
         stats = self.gate.stats()
-        if any(stats[v.value] for v in Verdict if v is not Verdict.ACCEPTED):
-            level = DiagnosticStatus.WARN
-        status = DiagnosticStatus(level=level, name="bridge", message=self.cfg.mode, hardware_id="sumo", values=values)
-        self.pub_diag.publish(DiagnosticArray(header=Header(stamp=mc.ns_to_time(self._stamp())), status=[status]))
+        rejected = any(stats[v.value] for v in Verdict if v is not Verdict.ACCEPTED)
+        self.pub_diag.publish(mc.make_diagnostics(self._stamp(), BRIDGE_STATUS, self.summary(), message=self.cfg.mode,
+                                                  hardware_id="sumo", warn=rejected))
 
     def on_shutdown(self, reason: str) -> None:
         self._publish_diagnostics()

@@ -1,0 +1,56 @@
+"""Offline export = what the online agent stored, on a real graph run with forced command timeouts.
+
+The bridge applies its default action (0, keep lane) when the agent's command misses
+``command_timeout``, and names the applied action in the next reward; the agent stores the
+applied action. Here the timeout is 2 ms and the agent saves a checkpoint every 10 steps (a
+pause of several ms), so many commands arrive late. ``der replay export`` of the recorded bag
+must give exactly the transitions in the agent's replay: same observations (bit for bit), the
+applied actions, rewards, flags, in the same order.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+from ros_harness import *  # noqa: F403 - ros_domain fixture
+from test_graph_cli import der_graph, reap
+
+from der_ros.agent.dqn import DQNAgent
+from der_ros.bag.export import build_transitions
+from der_ros.bag.reader import BagReader
+
+
+def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    proc = der_graph(
+        run_dir, ros_domain, "--steps", "150", "--seed", "5", "--no-plots",
+        "-p", "bridge_node:command_timeout=0.002",
+        "-p", "agent_node:replay.kind=uniform", "-p", "agent_node:replay.capacity=10000",
+        "-p", "agent_node:agent.learning_starts=100000",  # no gradient steps: the agent stays quick
+        "-p", "agent_node:checkpoint_every=10",  # ... except for these pauses, which the bridge times out on
+        "-p", "agent_node:warm_up=false",
+    )
+    try:
+        out, _ = proc.communicate(timeout=180)
+    finally:
+        reap(proc, run_dir)
+    assert proc.returncode == 0, out
+    bridge = json.loads(re.search(r"bridge summary: (\{.*\})", (run_dir / "logs" / "bridge_node.log").read_text())[1])
+    assert bridge["commands/timeouts"] > 0, bridge  # the forced timeouts happened
+
+    agent = DQNAgent.load(run_dir / "agent.pt")
+    n = len(agent.replay)
+    stored = agent.replay.storage.gather(np.arange(n, dtype=np.int64))  # uniform ring, capacity > n: in order
+    tr = build_transitions(BagReader(run_dir / "bag"))
+
+    assert len(tr) == n > 100
+    obs, actions, rewards, next_obs, terminated, truncated = stored
+    assert np.array_equal(tr.obs, obs) and np.array_equal(tr.next_obs, next_obs)
+    assert np.array_equal(tr.actions, actions)
+    assert np.array_equal(tr.rewards.astype(np.float32), rewards)
+    assert np.array_equal(tr.terminated, terminated) and np.array_equal(tr.truncated, truncated)
+    # the commanded action differed from the applied one somewhere: exporting commands would have failed
+    assert tr.overridden > 0
