@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from der_ros.configuration import ConfigError
+from der_ros.train.envs import make_env_from_config
 
 __all__ = [
     "EVAL_SEED_BASE",
@@ -407,8 +408,6 @@ def _evaluate(spec: EvalSpec, envs: Sequence[Any], step: int, state: dict[str, A
 
 
 def _make_envs(spec: EvalSpec, count: int) -> list[Any]:
-    from der_ros.train.envs import make_env_from_config
-
     return [make_env_from_config(spec.env_cfg, spec.seed_base + i) for i in range(count)]
 
 
