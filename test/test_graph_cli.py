@@ -23,7 +23,10 @@ TS = jazzy_typestore()
 
 
 def der_graph(run_dir: Path, domain: int, *extra: str) -> subprocess.Popen:
+    """``der graph`` as a process; no greedy evaluations unless the test asks (they cost SUMO time)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+    if "--final-eval-episodes" not in extra:
+        extra = (*extra, "--eval-interval", "0", "--final-eval-episodes", "0")
     return subprocess.Popen(
         [sys.executable, "-m", "der_ros.cli", "graph", "--run-dir", str(run_dir), "--domain-id", str(domain),
          "--grace", "20", *extra],
@@ -73,9 +76,10 @@ def wait_for_states(run_dir: Path, proc: subprocess.Popen, more_than: int) -> No
 def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     steps = 60
-    proc = der_graph(run_dir, ros_domain, "--steps", str(steps), "--seed", "3")
+    proc = der_graph(run_dir, ros_domain, "--steps", str(steps), "--seed", "3", "--eval-interval", "30",
+                     "--eval-episodes", "2", "--final-eval-episodes", "3")
     try:
-        out, _ = proc.communicate(timeout=150)
+        out, _ = proc.communicate(timeout=200)
     finally:
         reap(proc, run_dir)
     assert proc.returncode == 0, out
@@ -107,6 +111,17 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     for event in ("success", "collision", "time_limit"):
         assert summary["outcomes"][event] == int(bridge[f"events/{event}"]), event
     assert summary["steps"] == int(bridge["sim_steps"]) == steps
+
+    # the greedy evaluations: the agent's policy snapshots (start, every 30 steps) and its final checkpoint,
+    # on held-out seeds, in a second process; the summary ends with the final one
+    evals = (run_dir / "evaluations.csv").read_text().splitlines()
+    rows = [tuple(row.split(",")[:2]) for row in evals[1:]]
+    assert rows[:2] == [("0", "2"), ("30", "2")] and rows[-1] == ("60", "3")
+    assert set(rows[2:-1]) <= {("60", "2")}  # the snapshot at 60 races the end of the run
+    final = json.loads((run_dir / "evaluation.json").read_text())
+    assert len(final["episodes"]) == 3 and min(final["seeds"]) >= 1_000_000_000
+    assert summary["evaluation"]["episodes"] == 3 and "greedy policy (3 held-out episodes)" in out
+    assert f"success {final['summary']['success']:.1%}" in out
 
     with Reader(bag) as r:
         conns = [x for x in r.connections if x.topic == "/state"]

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import yaml
 
+from der_ros.graph.evaluation import GraphEvaluator
 from der_ros.graph.progress import Progress
 from der_ros.graph.report import bridge_summary, report, snapshot_from_bag
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
@@ -73,6 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the three nodes in one process with one executor (less IPC, one log)")
     parser.add_argument("-p", "--param", action="append", default=[], metavar="NODE:NAME=VALUE",
                         help="extra parameter, e.g. agent_node:agent.lr=0.001 (value parsed as YAML); repeatable")
+    parser.add_argument("--eval-interval", type=int, default=1000,
+                        help="greedy evaluation of the agent's policy every this many steps, in a second process on "
+                        "held-out seeds (default 1000; 0 = only the final one)")
+    parser.add_argument("--eval-episodes", type=int, default=100, help="episodes per periodic evaluation (default 100)")
+    parser.add_argument("--final-eval-episodes", type=int, default=300,
+                        help="episodes of the evaluation of the trained agent at the end (default 300; 0 = none)")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots at the end")
     parser.add_argument("--grace", type=float, default=20.0,
                         help="seconds each node gets to stop after SIGINT before SIGTERM/SIGKILL (default 20)")
@@ -98,6 +105,10 @@ def _term_as_interrupt(_signum: int, _frame: object) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise SystemExit("der graph: --steps must be >= 1")
+    for flag, value in (("--eval-interval", args.eval_interval), ("--eval-episodes", args.eval_episodes),
+                        ("--final-eval-episodes", args.final_eval_episodes)):  # fmt: skip
+        if value < 0:
+            raise SystemExit(f"der graph: {flag} = {value}, expected >= 0")
     run_dir = args.run_dir or Path("runs") / time.strftime("graph-%Y%m%d-%H%M%S", time.gmtime())
     if run_dir.exists() and any(run_dir.iterdir()):
         raise SystemExit(f"der graph: run directory {run_dir} exists and is not empty")
@@ -106,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
     params = build_graph_params(  # rejects a bad --param before any output
         load_params_file(params_in), steps=args.steps, scenario=args.scenario, run_dir=run_dir,
         free_run=args.free_run, replay=args.replay, lam=args.lam, seed=args.seed, overrides=args.param)
+    evaluating = bool(args.eval_interval and args.eval_episodes) or bool(args.final_eval_episodes)
+    if args.eval_interval and args.eval_episodes:
+        params["agent_node"]["ros__parameters"]["policy_every"] = int(args.eval_interval)
+        params["agent_node"]["ros__parameters"]["policy_dir"] = str(run_dir / "policies")
     run_dir.mkdir(parents=True, exist_ok=True)
     params_path = run_dir / "params.yaml"
     params_path.write_text(yaml.safe_dump(params, sort_keys=False))
@@ -117,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
           file=sys.stderr, flush=True)
     monitor = None
     progress = None
+    evaluator = GraphEvaluator(run_dir, params, run_dir / "policies", args.eval_episodes if args.eval_interval else 0,
+                               args.final_eval_episodes) if evaluating else None  # fmt: skip
     outcome: RunOutcome | None = None
     t0 = time.monotonic()
     old_term = signal.signal(signal.SIGTERM, _term_as_interrupt)  # SIGTERM = Ctrl-C: stop in order
@@ -137,7 +154,11 @@ def run(args: argparse.Namespace) -> int:
 
             def tick() -> None:
                 snap = monitor.snapshot()
-                progress.update(snap.steps, snap.line())
+                line = snap.line()
+                last = evaluator.poll() if evaluator is not None else None
+                if last is not None:
+                    line += f" | greedy@{last.step}: success {last.success_rate:.0%}, collisions {last.collision_rate:.0%}"
+                progress.update(snap.steps, line)
 
             outcome = sup.supervise(on_tick=tick, poll_interval=0.25)
     finally:
@@ -156,7 +177,18 @@ def run(args: argparse.Namespace) -> int:
     bridge = bridge_summary(run_dir / "logs")
     if snap is not None and "sim_steps" in bridge:
         snap.steps = int(bridge["sim_steps"])  # the bridge's own count of simulated decision steps
-    return report(outcome, snap, run_dir, wall, args, params, bridge)
+    final = None
+    if evaluator is not None:
+        try:
+            if outcome.ok and args.final_eval_episodes:
+                print(f"der graph: evaluating the trained agent greedily on {args.final_eval_episodes} held-out episodes "
+                      "...", file=sys.stderr, flush=True)  # fmt: skip
+            final = evaluator.finish(run_dir / "agent.pt" if outcome.ok else None)
+        except (RuntimeError, OSError, KeyError) as exc:  # an evaluation must not turn a finished run into a failure
+            log.warning("greedy evaluation failed: %s", exc)
+        finally:
+            evaluator.close()
+    return report(outcome, snap, run_dir, wall, args, params, bridge, final)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -27,6 +27,7 @@ from der_ros.bag.writer import read_episode_summary
 from der_ros.contract import COMMAND, EPISODE_COLLISION, EPISODE_START, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
 from der_ros.graph.progress import ProgressSnapshot
 from der_ros.graph.runner import RunOutcome
+from der_ros.train.evaluation import EvalResult
 
 __all__ = ["bridge_summary", "snapshot_from_bag", "report"]
 
@@ -117,7 +118,7 @@ def _replay_text(params: dict[str, Any]) -> str:
 
 
 def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wall: float, args: argparse.Namespace,
-           params: dict[str, Any], bridge: dict[str, float]) -> int:
+           params: dict[str, Any], bridge: dict[str, float], evaluation: EvalResult | None = None) -> int:
     """Write ``summary.json`` and the plots, print the table and the paths; returns the exit code
     (0 finished, 130 interrupted, 1 failed)."""
     bag = run_dir / "bag"
@@ -141,6 +142,7 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
         "checkpoint": str(ckpt) if ckpt.exists() else None,
         "plots": [str(p) for p in plots],
         "logs": str(run_dir / "logs"),
+        "evaluation": evaluation.summary() if evaluation is not None else None,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
 
@@ -163,6 +165,14 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
         for name in ("losses/td_loss", "replay/h2_fraction", "charts/epsilon"):
             if name in snap.metrics:
                 rows.append((name, f"{snap.metrics[name]:.4g}"))
+        if evaluation is not None:
+            rows += [
+                ("", ""),
+                (f"greedy policy ({evaluation.n} held-out episodes)",
+                 f"success {evaluation.success_rate:.1%} · caused collisions {evaluation.collision_rate:.1%} · "
+                 f"time limit {evaluation.time_limit_rate:.1%}"),
+                ("greedy mean return", f"{evaluation.mean_return:+.2f} (the 50-step episode pays ~216 for a safe change)"),
+            ]
         for k, v in rows:
             table.add_row(k, v)
     console.print(table)
@@ -173,6 +183,8 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
     for i, plot in enumerate(summary["plots"] or ["-"]):
         print(f"  {'plots:' if i == 0 else '':<11} {plot}")
     print(f"  logs:       {summary['logs']}")
+    if (run_dir / "evaluations.csv").is_file():
+        print(f"  evaluation: {run_dir / 'evaluations.csv'}" + (f", {run_dir / 'evaluation.json'}" if evaluation else ""))
     if outcome.ok:
         return 0
     if outcome.reason == "interrupted":

@@ -60,6 +60,7 @@ from der_ros.nodes import node_configs
 from der_ros.nodes.node_configs import AGENT_MUTABLE, AgentNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
+from der_ros.train.evaluation import save_policy
 from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observation
 
 __all__ = ["AgentNode", "parameter_sections", "main"]
@@ -116,6 +117,8 @@ class AgentNode(Node):
         self.bad_messages: dict[str, int] = {STATE: 0, REWARD: 0, EPISODE: 0}
         self._learn_calls = 0
         self._last_saved_step = self.agent.steps
+        self._next_policy_step = self.agent.steps  # the first snapshot: the policy it starts with
+        self._maybe_policy()
         self._last_metrics: dict[str, float] = {}
 
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
@@ -190,6 +193,14 @@ class AgentNode(Node):
             if d.episode is not None:
                 self._publish_metrics(d.stamp_ns, d.episode.metrics())
         self._maybe_checkpoint()
+        self._maybe_policy()
+
+    def _maybe_policy(self) -> None:
+        """A policy snapshot at start and every ``policy_every`` steps (der graph evaluates them)."""
+        every, steps = self.cfg.policy_every, self.agent.steps
+        if every and self.cfg.policy_dir and steps >= self._next_policy_step:
+            save_policy(self.cfg.policy_dir, steps, self.agent.q_net)
+            self._next_policy_step = (steps // every + 1) * every
 
     def _learn(self) -> None:
         metrics = self.learner.learn()

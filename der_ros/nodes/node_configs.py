@@ -57,6 +57,10 @@ class AgentNodeConfig:
     checkpoint_out: str = param("", "checkpoint file written periodically and on shutdown (empty = never)")
     checkpoint_every: int = param(5000, "save every this many environment steps (0 = only on shutdown / service)",
                                   low=0)
+    policy_every: int = param(
+        0, "write the Q-network's weights to policy_dir every this many environment steps (and at start), for "
+        "der graph's greedy evaluations in another process (0 = never)", low=0)
+    policy_dir: str = param("", "folder of the policy snapshots (policy_<steps>.npz, a few tens of kB each)")
     metrics_every: int = param(100, "publish agent/metrics every this many gradient-step calls (and at every "
                                "episode end)", low=1)
     evaluate: bool = param(False, "start paused: evaluation mode (greedy actions, no learning)")

@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import multiprocessing as mp
+import os
 import queue
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -61,6 +62,10 @@ __all__ = [
     "InlineEvaluator",
     "ProcessEvaluator",
     "make_evaluator",
+    "net_state",
+    "save_policy",
+    "load_policy",
+    "policy_files",
     "write_eval_row",
     "read_evaluations",
     "truncate_evaluations",
@@ -416,6 +421,37 @@ def net_state(net: Any) -> dict[str, np.ndarray]:
     return {k: v.detach().cpu().numpy().copy() for k, v in net.state_dict().items()}
 
 
+POLICY_PREFIX = "policy_"
+
+
+def save_policy(directory: str | Path, steps: int, net: Any) -> Path:
+    """Write the Q-network's weights at ``steps`` as ``<directory>/policy_<steps>.npz`` (atomic).
+
+    A few tens of kB: the ROS agent node writes one every ``policy_every`` steps so that ``der
+    graph`` can evaluate the policy greedily in another process while the graph trains on.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"{POLICY_PREFIX}{int(steps):09d}.npz"
+    tmp = directory / f".{path.name}.tmp{os.getpid()}.npz"
+    np.savez(tmp, **{f"w:{k}": v for k, v in net_state(net).items()}, steps=np.int64(steps))
+    os.replace(tmp, path)
+    return path
+
+
+def load_policy(path: str | Path) -> tuple[int, dict[str, np.ndarray]]:
+    """(steps, weights) of a file written by :func:`save_policy`."""
+    with np.load(Path(path), allow_pickle=False) as data:
+        state = {k[2:]: data[k] for k in data.files if k.startswith("w:")}
+        return int(data["steps"]), state
+
+
+def policy_files(directory: str | Path) -> list[Path]:
+    """The policy snapshots of ``directory``, by step."""
+    directory = Path(directory)
+    return sorted(directory.glob(f"{POLICY_PREFIX}*.npz")) if directory.is_dir() else []
+
+
 class Evaluator:
     """Runs greedy evaluations; ``submit`` them, ``poll`` finished ones, ``finish`` waits for all."""
 
@@ -468,7 +504,6 @@ class InlineEvaluator(Evaluator):
 
 def _worker(spec: EvalSpec, jobs: Any, results: Any) -> None:
     """Evaluation process: one environment (libsumo allows one per process), jobs until None."""
-    import os
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the trainer decides when to stop
