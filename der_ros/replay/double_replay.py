@@ -30,7 +30,9 @@ uniformly sampling from DQN").
 Note on 'move' with p_promote = 1: every H1 row of every batch leaves H1, about
 (1 - lambda) x B per gradient step, while one transition arrives per env step; H1 then
 holds only transitions no gradient step has used yet (a few), and its share of each
-batch repeats them. ``'copy'`` keeps H1 a full N1 window (the YAML configs use it).
+batch repeats them. ``'copy'`` keeps H1 a full N1 window: the library default and every
+shipped config. ``'move'`` stays available as the authors' rule (their code pops from H1,
+but trains once per episode, where the drain does not arise).
 
 Weight update, eq. 3. The H2 transitions of a batch get "p <- p^{w_t}, where
 w_t = delta_t^2 / sum_n delta_n^2", the sum over the batch's H2 transitions
