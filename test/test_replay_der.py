@@ -27,7 +27,8 @@ def fill(buf, n: int, start: int = 0) -> None:
 
 
 def der(seed: int = 0, obs_shape: tuple[int, ...] = (2,), **fields) -> DoubleReplay:
-    cfg = dict(kind="der", capacity=100, h2_capacity=50, lam=0.5, h2_min_size=1)
+    # 'move' unless a test asks for 'copy' (the library default): most rules below are about moving
+    cfg = dict(kind="der", capacity=100, h2_capacity=50, lam=0.5, h2_min_size=1, promote_mode="move")
     cfg.update(fields)
     return DoubleReplay(ReplayConfig(**cfg), obs_shape, seed=seed)
 
