@@ -34,6 +34,7 @@ import yaml
 __all__ = [
     # topic names
     "CLOCK", "STATE", "REWARD", "ODOM", "EPISODE", "COMMAND", "METRICS", "BRIDGE_DIAGNOSTICS",
+    "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS",
     # status names, events, prefixes
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
@@ -45,6 +46,10 @@ __all__ = [
     "Reward", "stamp_to_ns", "header_ns", "parse_reward", "applied_action_frame", "parse_applied_action",
     "parse_command", "command_action", "cloud_to_points", "point_field_names", "odometry_pose",
     "parse_key_values", "format_value", "episode_values", "parse_episode_events", "diagnostics_to_metrics",
+    # the scene markers (visualization_msgs/MarkerArray)
+    "MARKER_CUBE", "MARKER_LINE_STRIP", "MARKER_ADD", "MARKER_DELETE", "MARKER_DELETEALL", "VEHICLE_NS", "LANE_NS",
+    "VEHICLE_HEIGHT", "SCENE_ROLES", "TRAFFIC_ROLE", "ROLE_COLOURS", "LANE_COLOUR", "VehicleMarker", "LaneLine",
+    "SceneUpdate", "yaw_quaternion", "role_of_colour", "parse_vehicle_markers", "parse_road_markers",
 ]
 
 log = logging.getLogger(__name__)
@@ -58,6 +63,10 @@ EPISODE = "episode"
 COMMAND = "lane_change_cmd"
 METRICS = "agent/metrics"
 BRIDGE_DIAGNOSTICS = "bridge/diagnostics"
+SCENE_VEHICLES = "scene/vehicles"
+SCENE_ROAD = "scene/road"
+#: the topics a viewer (RViz, Foxglove, ``der replay render``) draws the scene from
+SCENE_TOPICS = (SCENE_VEHICLES, SCENE_ROAD)
 
 # -- DiagnosticStatus names and episode events -----------------------------------------------------
 #: status name of every event on the ``episode`` topic
@@ -359,6 +368,29 @@ TOPICS: tuple[TopicSpec, ...] = (
         units="counts, steps/s, ms",
         record=False,
     ),
+    TopicSpec(
+        name=SCENE_VEHICLES,
+        msgtype="visualization_msgs/msg/MarkerArray",
+        qos=QosSpec(depth=10),
+        publisher="bridge_node (markers:=true)",
+        subscribers=("recorder_node", "RViz / Foxglove", "der replay render"),
+        rate="1 per decision step, after state",
+        meaning="every vehicle as a CUBE in the map frame (ns 'vehicles', id stable while the vehicle exists, "
+        "text = SUMO id, pose = its centre, colour = its role: ego or one of the neighbour slots or traffic); "
+        "a DELETE for each vehicle that left; stamp t_k",
+        units="m, rad (quaternion)",
+    ),
+    TopicSpec(
+        name=SCENE_ROAD,
+        msgtype="visualization_msgs/msg/MarkerArray",
+        qos=QosSpec(durability="transient_local", depth=1),
+        publisher="bridge_node (markers:=true)",
+        subscribers=("recorder_node", "RViz / Foxglove", "der replay render"),
+        rate="once at start (latched: late subscribers get it)",
+        meaning="every lane of the SUMO network as a LINE_STRIP along its centre line (ns 'lanes', "
+        "scale.x = lane width, text = SUMO lane id), map frame",
+        units="m",
+    ),
 )
 _BY_NAME = {spec.name: spec for spec in TOPICS}
 
@@ -565,3 +597,129 @@ def diagnostics_to_metrics(msg: Any, names: Sequence[str] | None = None) -> dict
             except ValueError:
                 continue
     return out
+
+
+
+# -- the scene markers (``scene/vehicles``, ``scene/road``) ---------------------------------------
+# visualization_msgs/Marker constants (the message's own values; spelled here so ROS-free code
+# can build and read markers).
+MARKER_CUBE, MARKER_LINE_STRIP = 1, 4
+MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL = 0, 2, 3
+#: marker namespace of the vehicles on ``scene/vehicles`` and of the lanes on ``scene/road``
+VEHICLE_NS, LANE_NS = "vehicles", "lanes"
+#: height (z size) of a vehicle's cube, m; its centre sits at half this height
+VEHICLE_HEIGHT = 1.5
+#: a vehicle that is neither the ego nor in a neighbour slot
+TRAFFIC_ROLE = "traffic"
+#: the role of a vehicle in the scene: the ego, one of the observation's neighbour slots
+#: (``sumo_bridge.observation.SLOT_NAMES``, in order), or other traffic
+SCENE_ROLES: tuple[str, ...] = ("ego", "leader", "follower", "left_leader", "left_follower", "right_leader",
+                                "right_follower", TRAFFIC_ROLE)  # fmt: skip
+#: RGBA of each role: the ego red, the slots of the current lane orange/yellow, of the left lane
+#: greens, of the right lane blues (leaders darker than followers), traffic grey. A viewer tells
+#: the roles apart by colour alone, and :func:`role_of_colour` reads a role back from a marker.
+ROLE_COLOURS: dict[str, tuple[float, float, float, float]] = {
+    "ego": (0.85, 0.10, 0.10, 1.0),
+    "leader": (1.0, 0.55, 0.0, 1.0),
+    "follower": (0.95, 0.80, 0.15, 1.0),
+    "left_leader": (0.05, 0.55, 0.20, 1.0),
+    "left_follower": (0.45, 0.80, 0.40, 1.0),
+    "right_leader": (0.10, 0.35, 0.85, 1.0),
+    "right_follower": (0.45, 0.70, 1.0, 1.0),
+    TRAFFIC_ROLE: (0.62, 0.62, 0.62, 1.0),
+}
+#: RGBA of the lanes on ``scene/road``
+LANE_COLOUR = (0.30, 0.30, 0.33, 1.0)
+_COLOUR_TOLERANCE = 2e-3  # ColorRGBA is float32
+
+
+class VehicleMarker(NamedTuple):
+    """One vehicle of ``scene/vehicles``: the cube's centre and heading in the map frame."""
+
+    marker_id: int
+    vehicle_id: str
+    role: str
+    x: float
+    y: float
+    #: heading, radians counter-clockwise from the map's x axis (REP 103)
+    yaw: float
+    length: float
+    width: float
+
+
+class LaneLine(NamedTuple):
+    """One lane of ``scene/road``: its centre line (``(n, 2)`` float64, m) and width (m)."""
+
+    lane_id: str
+    points: np.ndarray
+    width: float
+
+
+class SceneUpdate(NamedTuple):
+    """What one ``scene/vehicles`` message changes: vehicles added or moved, marker ids deleted, and
+    whether everything known before was cleared first (a DELETEALL clears what came before it,
+    markers being applied in array order as RViz applies them)."""
+
+    stamp_ns: int
+    vehicles: list[VehicleMarker]
+    deleted: list[int]
+    delete_all: bool
+
+
+def yaw_quaternion(yaw: float) -> tuple[float, float]:
+    """(z, w) of the quaternion of a rotation by ``yaw`` about the z axis (x = y = 0)."""
+    return math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def role_of_colour(r: float, g: float, b: float) -> str:
+    """The role whose colour (:data:`ROLE_COLOURS`) this is; ValueError naming the colour if none is."""
+    for role, (cr, cg, cb, _a) in ROLE_COLOURS.items():
+        if abs(r - cr) <= _COLOUR_TOLERANCE and abs(g - cg) <= _COLOUR_TOLERANCE and abs(b - cb) <= _COLOUR_TOLERANCE:
+            return role
+    raise ValueError(f"vehicle marker colour = ({r:.3f}, {g:.3f}, {b:.3f}), not the colour of any role in {SCENE_ROLES}")
+
+
+def parse_vehicle_markers(msg: Any) -> SceneUpdate:
+    """A ``scene/vehicles`` MarkerArray -> :class:`SceneUpdate` (markers of other namespaces are
+    ignored, so a viewer may add its own); ValueError naming the marker and field if malformed."""
+    vehicles: list[VehicleMarker] = []
+    deleted: list[int] = []
+    delete_all = False
+    stamp = 0
+    for i, m in enumerate(msg.markers):
+        if i == 0:
+            stamp = header_ns(m)
+        if m.action == MARKER_DELETEALL:
+            delete_all, vehicles, deleted = True, [], []
+            continue
+        if m.ns != VEHICLE_NS:
+            continue
+        if m.action == MARKER_DELETE:
+            deleted.append(int(m.id))
+            continue
+        if m.action != MARKER_ADD:
+            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): action = {m.action}, expected "
+                             f"ADD ({MARKER_ADD}), DELETE ({MARKER_DELETE}) or DELETEALL ({MARKER_DELETEALL})")
+        if m.type != MARKER_CUBE:
+            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): type = {m.type}, expected CUBE ({MARKER_CUBE})")
+        q = m.pose.orientation
+        c = m.color
+        vehicles.append(VehicleMarker(
+            int(m.id), str(m.text), role_of_colour(c.r, c.g, c.b), float(m.pose.position.x), float(m.pose.position.y),
+            2.0 * math.atan2(q.z, q.w), float(m.scale.x), float(m.scale.y),
+        ))  # fmt: skip
+    return SceneUpdate(stamp, vehicles, deleted, delete_all)
+
+
+def parse_road_markers(msg: Any) -> list[LaneLine]:
+    """The lanes of a ``scene/road`` MarkerArray (LINE_STRIPs of namespace ``lanes``), in message order."""
+    lanes = []
+    for i, m in enumerate(msg.markers):
+        if m.ns != LANE_NS or m.action != MARKER_ADD:
+            continue
+        if m.type != MARKER_LINE_STRIP or len(m.points) < 2:
+            raise ValueError(f"scene/road marker {i} ({m.text!r}): type {m.type} with {len(m.points)} points, "
+                             f"expected a LINE_STRIP ({MARKER_LINE_STRIP}) of at least 2 points")
+        pts = np.array([(p.x, p.y) for p in m.points], dtype=np.float64)
+        lanes.append(LaneLine(str(m.text), pts, float(m.scale.x)))
+    return lanes

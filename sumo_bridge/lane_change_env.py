@@ -73,6 +73,11 @@ Neighbours come from one context subscription on the ego (lanes -1/0/+1, up- and
 per step; the mean speed from per-vehicle speed subscriptions (one read per step); departures
 and collisions from a simulation subscription, so on traci a step is one round trip.
 
+Viewers: :meth:`LaneChangeEnv.enable_scene` widens the per-vehicle subscriptions to position,
+angle and size, and :meth:`LaneChangeEnv.scene` / :meth:`LaneChangeEnv.lanes` give every vehicle
+and the road (:mod:`sumo_bridge.scene`, the core of the bridge's marker topics). Off by default:
+training does not pay for it.
+
 Only one libsumo simulation can live in a process (:mod:`sumo_bridge.sim_backend`): a second
 live env raises :class:`~sumo_bridge.sim_backend.SimulationInUseError`. Run parallel envs in
 subprocesses.
@@ -88,6 +93,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from der_ros.contract import LaneLine
 from sumo_bridge.network_build import BuiltNetwork, build_network
 from sumo_bridge.observation import (
     POINT_FIELDS,
@@ -98,6 +104,7 @@ from sumo_bridge.observation import (
     observation_space,
 )
 from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
+from sumo_bridge.scene import SCENE_VARS, Scene, SceneTracker, read_lanes
 from sumo_bridge.sim_backend import SumoSimulation, constants
 
 log = logging.getLogger(__name__)
@@ -161,6 +168,9 @@ class LaneChangeEnv(gym.Env):
         self._ego_lane_count = 0
         self._slots: list[tuple[float, str, dict[int, Any]] | None] = [None] * len(SLOT_NAMES)
         self._ego_xy_angle = (0.0, 0.0, 0.0)
+        self._vehicle_vars = _SPEED_ONLY  # what each departing vehicle is subscribed to
+        self._vehicle_results: dict[str, dict[int, Any]] | None = None  # the step's subscription results
+        self._scene: SceneTracker | None = None
         self._reset_episode_state()
 
     # ------------------------------------------------------------------ helpers
@@ -482,12 +492,13 @@ class LaneChangeEnv(gym.Env):
         api.simulationStep()
         sim = api.simulation.getSubscriptionResults()
         for vid in sim[_V_DEPARTED]:
-            api.vehicle.subscribe(vid, _SPEED_ONLY)
+            api.vehicle.subscribe(vid, self._vehicle_vars)
         self._colliding = sim[_V_COLLIDING] > 0
 
     def _mean_speed(self) -> float:
         """Mean speed (m/s) of all vehicles in the simulation (section 5.1 reward)."""
         results = self.api.vehicle.getAllSubscriptionResults()
+        self._vehicle_results = results  # scene() reads the same answer (with the scene's variables)
         if not results:
             return 0.0
         # fsum: exact, so the result does not depend on the order the backend returns vehicles in
@@ -589,6 +600,32 @@ class LaneChangeEnv(gym.Env):
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
         self._obs = encode_point_rows(rows, cfg.observation)
         self._points = np.array(rows, dtype=np.float64)
+
+    # ------------------------------------------------------------------ scene (viewers)
+    def enable_scene(self) -> None:
+        """Subscribe every vehicle to position, angle and size from now on, so that :meth:`scene`
+        costs no extra call per vehicle. Vehicles already running are re-subscribed."""
+        if self._scene is not None:
+            return
+        self._vehicle_vars = SCENE_VARS
+        self._scene = SceneTracker()
+        for vid in self.api.vehicle.getIDList():
+            self.api.vehicle.subscribe(vid, SCENE_VARS)
+        self._vehicle_results = None  # read afresh: the last results lack the new variables
+
+    def scene(self) -> Scene:
+        """Every vehicle now (world position, angle, size, role: ego / neighbour slot / traffic) and the
+        vehicles gone since the previous call; RuntimeError unless :meth:`enable_scene` was called."""
+        if self._scene is None:
+            raise RuntimeError("scene() needs enable_scene() first (the per-vehicle position subscriptions)")
+        results = self._vehicle_results
+        if results is None:
+            results = self._vehicle_results = self.api.vehicle.getAllSubscriptionResults()
+        return self._scene.update(results, self.ego_id, self.neighbour_ids())
+
+    def lanes(self) -> tuple[LaneLine, ...]:
+        """Every lane of the network: centre line and width (for drawing the road)."""
+        return read_lanes(self.api)
 
     def neighbour_ids(self) -> dict[str, str | None]:
         """Vehicle id in each slot of the last points (for tests and debugging; not observed)."""

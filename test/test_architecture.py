@@ -150,6 +150,7 @@ ENTRY_LAYER = 8
 #: below this layer nothing may import ROS (the ROS-free cores)
 ROS_LAYER = 5
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs", "nav_msgs", "diagnostic_msgs",
+                "visualization_msgs",
                 "rosgraph_msgs", "builtin_interfaces", "std_srvs", "launch", "launch_ros", "rosidl_runtime_py"}
 #: a function may import these lazily (startup time), and project modules that load one of them at the top
 HEAVY = {"torch", "matplotlib", *ROS_PACKAGES}

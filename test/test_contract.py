@@ -202,7 +202,8 @@ def test_rclpy_profiles_are_the_table() -> None:
         q = topic_qos(t.name)
         assert q.depth == t.qos.depth
         assert (q.reliability == ReliabilityPolicy.BEST_EFFORT) == t.qos.best_effort
-        assert q.durability == DurabilityPolicy.VOLATILE
+        assert (q.durability == DurabilityPolicy.TRANSIENT_LOCAL) == t.qos.transient_local
+        assert q.durability in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL)
         assert ct.QosSpec.from_rosbag2(qos_to_rosbag2(q)) == t.qos  # and back, as the recorder writes it
     sensor = topic_qos(ct.ODOM)
     assert (sensor.reliability, sensor.depth, sensor.history) == (

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
@@ -180,3 +181,58 @@ def test_free_run_steps_on_its_timer_and_applies_the_latest_command(ros_graph): 
     assert a.lane(5) == 1
     c = a.counters(at_least_steps=5)
     assert c["commands/accepted"] == 1 and c["commands/timeouts"] == 0
+
+
+def test_scene_markers_are_sumos_vehicles_and_the_road_is_latched(ros_graph):  # noqa: F811
+    """scene/vehicles at every step: every vehicle where libsumo (replaying the bridge's scenario and
+    actions in this process) has it, with its role's colour and a stable id, DELETEs for vehicles gone at
+    the next episode; scene/road reaches a subscriber that joins late (transient local)."""
+    from test_scene import check_against_libsumo
+    from visualization_msgs.msg import MarkerArray
+
+    from der_ros.contract_ros import topic_qos
+    from sumo_bridge.lane_change_env import LaneChangeEnv
+
+    vehicles = ros_graph.probe.collect(ct.SCENE_VEHICLES, MarkerArray)
+    a = FakeAgent(ros_graph, **{"scenario.max_episode_steps": 3})
+    actions = [0, 0, 0]  # episode 0: states 0..3 (3 ends it), episode 1 starts at state 4
+    for k, action in enumerate(actions):
+        a.state(k)
+        a.send(k, action)
+    a.state(4)
+
+    def update(k: int) -> ct.SceneUpdate:
+        found = wait_for(lambda: [u for u in map(ct.parse_vehicle_markers, list(vehicles)) if u.stamp_ns == k * STEP_NS],
+                         10, what=f"scene/vehicles stamped t_{k}", procs=[a.proc])  # fmt: skip
+        assert len(found) == 1
+        return found[0]
+
+    env = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=3))  # the bridge's scenario (seed 0)
+    try:
+        env.enable_scene()
+        env.reset()
+        ids = check_against_libsumo(env, update(0), need_slots=False)
+        roles = set()
+        for k, action in enumerate(actions, start=1):
+            env.step(action)
+            u = update(k)
+            assert check_against_libsumo(env, u, need_slots=False) == ids  # ids stable within the episode
+            assert not u.deleted
+            roles |= {v.role for v in u.vehicles}
+        assert {"ego", "traffic"} < roles and roles - {"ego", "traffic"}  # some neighbour slot was coloured
+        before = set(env.api.vehicle.getIDList())
+        env.reset()
+        gone = before - set(env.api.vehicle.getIDList())
+        u = update(4)
+        assert gone and sorted(u.deleted) == sorted(ids[vid] for vid in gone)
+        check_against_libsumo(env, u, need_slots=False)
+        lanes = {lane.lane_id: lane for lane in env.lanes()}
+    finally:
+        env.close()
+
+    late = a.probe.collect(ct.SCENE_ROAD, MarkerArray, qos=topic_qos(ct.SCENE_ROAD))
+    road = wait_for(lambda: list(late), 10, what="the latched scene/road", procs=[a.proc])
+    got = {lane.lane_id: lane for lane in ct.parse_road_markers(road[0])}
+    assert set(got) == set(lanes)
+    assert all(np.array_equal(got[i].points, lanes[i].points) and got[i].width == lanes[i].width for i in lanes)
+    assert road[0].markers[0].header.frame_id == "map"

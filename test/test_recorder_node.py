@@ -6,6 +6,7 @@ import signal
 import time
 from pathlib import Path
 
+import numpy as np
 import yaml
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
@@ -152,3 +153,49 @@ def test_bad_parameter_is_rejected_at_start(ros_graph, tmp_path: Path) -> None:
     assert rec.wait(timeout=30) != 0
     assert "compression" in rec.output() and "bz2" in rec.output()
     assert not (tmp_path / "b").exists()
+
+
+def test_scene_topics_are_recorded_by_default_and_the_road_though_published_before_matching(
+        ros_graph, tmp_path: Path) -> None:  # fmt: skip
+    """The default topics include the scene markers. scene/road is published once, as the bridge does, at
+    once after its publisher is created, before the recorders (already subscribed by name) have matched it:
+    only a transient-local subscription (the table's QoS) still gets it. With record_scene false neither
+    marker topic is recorded."""
+    from visualization_msgs.msg import MarkerArray
+
+    from der_ros import contract as ct
+    from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
+    from der_ros.contract_ros import topic_qos
+    from der_ros.nodes.msg_conversions import make_episode_event
+
+    probe = ros_graph.probe
+    with_scene = ros_graph.start_node(MODULE, params={"output": str(tmp_path / "scene"), "discovery_period": 0.2})
+    without = ros_graph.start_node(MODULE, params={"output": str(tmp_path / "plain"), "discovery_period": 0.2,
+                                                   "record_scene": False})  # fmt: skip
+    lane = ct.LaneLine("e_0", np.array([[0.0, 0.0], [10.0, 0.0]]), 3.2)
+    road = probe.publisher(ct.SCENE_ROAD, MarkerArray, topic_qos(ct.SCENE_ROAD))
+    road.publish(road_markers_cdr([lane]))  # no wait for a match
+    vehicles = probe.publisher(ct.SCENE_VEHICLES, MarkerArray, topic_qos(ct.SCENE_VEHICLES))
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    episode = probe.publisher(ct.EPISODE, DiagnosticArray, 100)
+    publish_when_matched(ros_graph, vehicles, with_scene, ct.SCENE_VEHICLES)
+    wait_for(lambda: episode.get_subscription_count() >= 2, 30, what="both recorders on episode",
+             procs=[with_scene, without])  # fmt: skip
+    marker = ct.VehicleMarker(0, "ego", "ego", 1.0, 2.0, 0.5, 5.0, 1.8)
+    for k in range(5):
+        vehicles.publish(vehicle_markers_cdr([marker._replace(x=float(k))], [], k * 500_000_000))
+    episode.publish(make_episode_event(0, "start", {"episode": 0, "steps": 0}))
+    for rec, bag, expected in ((with_scene, tmp_path / "scene", 7), (without, tmp_path / "plain", 1)):
+        wait_for(lambda bag=bag, expected=expected: metadata(bag)["message_count"] >= expected, 30,
+                 what=f"messages in {bag.name}", procs=[rec])  # fmt: skip
+        rec.signal(signal.SIGTERM)
+        assert rec.wait(timeout=20) == 0, rec.output()[-3000:]
+    counts = {t["topic_metadata"]["name"]: t["message_count"] for t in metadata(tmp_path / "scene")["topics_with_message_count"]}
+    assert counts["/scene/road"] == 1 and counts["/scene/vehicles"] == 5 and counts["/episode"] == 1
+    plain = {t["topic_metadata"]["name"]: t["message_count"] for t in metadata(tmp_path / "plain")["topics_with_message_count"]}
+    assert plain == {"/episode": 1}
+    with Reader(tmp_path / "scene") as r:
+        (conn,) = [c for c in r.connections if c.topic == "/scene/road"]
+        (lanes,) = [ct.parse_road_markers(TS.deserialize_cdr(d, conn.msgtype)) for _, _, d in r.messages([conn])]
+    assert [x.lane_id for x in lanes] == ["e_0"] and np.array_equal(lanes[0].points, lane.points)

@@ -2,8 +2,12 @@
 
 Owns one :class:`sumo_bridge.lane_change_env.LaneChangeEnv` and speaks the "ROS 2 graph
 contract" (:mod:`der_ros.contract`): every step it publishes ``/clock``, ``reward`` (before
-``state``), ``state`` (PointCloud2 of the points), ``ego/odom`` and, on episode start/end,
-``episode``; it applies the actions arriving on ``lane_change_cmd``.
+``state``), ``state`` (PointCloud2 of the points), ``ego/odom``, ``scene/vehicles`` (every vehicle as a
+marker, with ``markers`` on) and, on episode start/end, ``episode``; it applies the actions
+arriving on ``lane_change_cmd``. With ``markers`` on it also publishes the road once on the
+latched ``scene/road``. The markers come from the env's scene (:mod:`sumo_bridge.scene`), encoded
+by :mod:`der_ros.bag.scene_cdr` and published as CDR bytes (a tenth of the cost of building rclpy
+messages, figures there); they go out after ``state``, while the agent computes its answer.
 
 Step keys: the bridge counts every published state with a global counter k (across episodes,
 reset states included) and stamps it t_k = k * step_seconds, so ``/clock`` is monotonic across
@@ -43,9 +47,12 @@ from rclpy.clock import Clock as RclClock
 from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
+from visualization_msgs.msg import MarkerArray
 
+from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -58,6 +65,8 @@ from der_ros.contract import (
     EPISODE_TIME_LIMIT,
     ODOM,
     REWARD,
+    SCENE_ROAD,
+    SCENE_VEHICLES,
     STATE,
     episode_values,
     parse_command,
@@ -127,6 +136,9 @@ class BridgeNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, BRIDGE_DIAGNOSTICS, topic_qos(BRIDGE_DIAGNOSTICS))
         # Two-argument callback: rclpy passes the MessageInfo (timestamps, sequence numbers).
         self.create_subscription(Joy, COMMAND, self._on_command, topic_qos(COMMAND))
+        self.pub_vehicles: Publisher | None = None
+        if self.cfg.markers:
+            self._start_scene()
 
         steady = RclClock(clock_type=ClockType.STEADY_TIME)
         self._timeout_timer = self.create_timer(self.cfg.command_timeout, self._on_timeout, clock=steady,
@@ -152,6 +164,19 @@ class BridgeNode(Node):
         self.get_logger().info(
             f"bridge ready: mode={self.cfg.mode} step={self.env.step_seconds}s scenario={self.scenario}"
         )
+
+    # -- scene markers (viewers, recorder) -------------------------------------------------------
+    def _start_scene(self) -> None:
+        """Per-vehicle position subscriptions in the env, the two marker topics, the road (latched)."""
+        self.env.enable_scene()
+        self.pub_vehicles = self.create_publisher(MarkerArray, SCENE_VEHICLES, topic_qos(SCENE_VEHICLES))
+        self.pub_road = self.create_publisher(MarkerArray, SCENE_ROAD, topic_qos(SCENE_ROAD))
+        self.pub_road.publish(road_markers_cdr(self.env.lanes(), 0, self.cfg.map_frame))
+
+    def _publish_scene(self, stamp: int) -> None:
+        assert self.pub_vehicles is not None
+        scene = self.env.scene()
+        self.pub_vehicles.publish(vehicle_markers_cdr(scene.markers(), scene.removed, stamp, self.cfg.map_frame))
 
     # -- start-up --------------------------------------------------------------------------------
     def _maybe_start(self) -> None:
@@ -211,6 +236,8 @@ class BridgeNode(Node):
             self.pub_odom.publish(
                 mc.make_odometry(stamp, pos[0], pos[1], float(info.get("angle", 0.0)), speed, self.cfg.map_frame)
             )
+        if self.pub_vehicles is not None:
+            self._publish_scene(stamp)
 
     def _step(self, action: int) -> None:
         t0 = time.perf_counter()
@@ -318,7 +345,9 @@ class BridgeNode(Node):
         # (acks follow Fast DDS heartbeats, so this often runs to the deadline; the data itself is
         # usually delivered long before).
         deadline = time.monotonic() + 0.5
-        for pub in (self.pub_reward, self.pub_state, self.pub_episode, self.pub_diag):
+        for pub in (self.pub_reward, self.pub_state, self.pub_episode, self.pub_diag, self.pub_vehicles):
+            if pub is None:
+                continue
             if not pub.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(), 0.0))):
                 self.get_logger().debug(f"{pub.topic_name}: not every subscriber acknowledged the last messages")
         summary = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in self.summary().items()}

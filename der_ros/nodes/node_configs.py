@@ -43,7 +43,11 @@ class BridgeNodeConfig:
         1, "start-up: subscribers that state and reward must each have before the first step (der graph sets 2: "
         "agent + recorder, so the bag starts with the first state)", low=1)
     diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
-    map_frame: str = param("map", "frame_id of ego/odom")
+    map_frame: str = param("map", "frame_id of ego/odom and of the scene markers")
+    markers: bool = param(
+        True, "publish the scene for RViz / Foxglove / der replay render: every vehicle on scene/vehicles each step "
+        "and the road once on scene/road (visualization_msgs/MarkerArray); costs SUMO position subscriptions and "
+        "the encoding, see bench/graph.py")
 
 
 @dataclass

@@ -8,9 +8,10 @@ subscribes, stamps and hands over bytes:
 * Topics: the ``topics`` parameter (default: the graph's table, :mod:`der_ros.contract`), whose
   types come from the table or, for other names, from graph discovery; with ``all_topics`` every
   topic that shows up in the graph (rescanned every ``discovery_period`` s) except
-  ``exclude_topics``. A topic's subscription QoS: best effort if the table or any publisher says
-  so (a reliable reader would not match a best-effort writer), transient-local if every
-  publisher is, KEEP_LAST ``queue_depth``.
+  ``exclude_topics``; ``record_scene: false`` leaves out the scene marker topics. A topic's
+  subscription QoS: best effort if the table or any publisher says so (a reliable reader would
+  not match a best-effort writer), transient-local if the table says so (``scene/road``, published
+  once: the recorder gets it whenever it joins) or every publisher is, KEEP_LAST ``queue_depth``.
 * Offered QoS written into the bag: the publishers' QoS from ``get_publishers_info_by_topic``
   when the topic's first message arrives (the table's QoS if no publisher is known then).
 * Stamps: MCAP log_time = receive time on this node's clock (system time; sim time if the node
@@ -34,7 +35,7 @@ from rclpy.node import Node
 
 from der_ros.bag.recorder_config import RecorderConfig, default_bag_path
 from der_ros.bag.writer import BagWriter, BagWriterError, jazzy_typestore
-from der_ros.contract import QosSpec, topic_by_name
+from der_ros.contract import SCENE_TOPICS, QosSpec, topic_by_name
 from der_ros.contract_ros import message_class, qos_profile, qos_to_rosbag2
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
@@ -47,6 +48,12 @@ log = logging.getLogger("recorder_node")
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
     return {"": RecorderConfig()}
+
+
+def _is_scene(topic: str) -> bool:
+    """A scene marker topic of the contract (``record_scene`` decides whether it is recorded)."""
+    spec = topic_by_name(topic)
+    return spec is not None and spec.name in SCENE_TOPICS
 
 
 class RecorderNode(Node):
@@ -76,13 +83,14 @@ class RecorderNode(Node):
         self._types: dict[str, str] = {}
         self._skipped: set[str] = set()
         self._excluded = {self.resolve_topic_name(t) for t in cfg.exclude_topics}
-        self._wanted = [self.resolve_topic_name(t) for t in cfg.topics]
+        self._wanted = [self.resolve_topic_name(t) for t in cfg.topics if cfg.record_scene or not _is_scene(t)]
         self._received = 0
         self.finished = False  # the recorder runs until signalled (run_node protocol)
         for name in self._wanted:
             spec = topic_by_name(name)
             if spec is not None and name.endswith(spec.name.lstrip("/")):
-                self._subscribe(name, spec.msgtype, best_effort=spec.qos.best_effort)
+                self._subscribe(name, spec.msgtype, best_effort=spec.qos.best_effort,
+                                transient_local=spec.qos.transient_local)
         self._discover()
         self.create_timer(cfg.discovery_period, self._discover)
         self.create_timer(min(0.25, cfg.flush_every_seconds / 2), self.writer.maybe_flush)
@@ -99,7 +107,7 @@ class RecorderNode(Node):
         except Exception:  # graph query during shutdown
             return []
 
-    def _subscribe(self, topic: str, msgtype: str, best_effort: bool = False) -> None:
+    def _subscribe(self, topic: str, msgtype: str, best_effort: bool = False, transient_local: bool = False) -> None:
         if topic in self._subs or topic in self._skipped:
             return
         cls = message_class(msgtype)
@@ -111,7 +119,7 @@ class RecorderNode(Node):
             return
         pubs = [QosSpec.from_rosbag2(q) for q in self._publisher_qos(topic)]
         best_effort = best_effort or any(q.best_effort for q in pubs)
-        transient = bool(pubs) and all(q.transient_local for q in pubs)
+        transient = transient_local or (bool(pubs) and all(q.transient_local for q in pubs))
         qos = qos_profile(QosSpec.make(best_effort=best_effort, transient_local=transient, depth=self.cfg.queue_depth))
 
         def on_message(data: bytes, info: Any, topic: str = topic, msgtype: str = msgtype) -> None:
