@@ -5,6 +5,7 @@
     der replay export BAG --to transitions.npz|transitions.parquet
     der replay train BAG [BAG...] --replay der --lam 0.9 [--steps N] [--eval-episodes K]
     der replay play BAG [--rate R] [--loop] [--topics T ...]
+    der replay render BAG [--episode N | --episodes A-B] --to out.gif|out.mp4
 
 Everything but ``play`` is ROS-free (``rosbags`` typestore for decoding). Read errors
 (:class:`~der_ros.bag.reader.BagError`: corrupted file, missing topics) are reported as one
@@ -28,6 +29,7 @@ from der_ros.bag.export import build_transitions, save_transitions
 from der_ros.bag.offline_train import add_train_arguments, run_train
 from der_ros.bag.plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader, DamagedChunk, DamagedChunkWarning, TruncatedBagWarning
+from der_ros.bag.render import RenderOptions, render_bag
 from der_ros.configuration import load_yaml
 from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
 from sumo_bridge.observation import ObservationConfig
@@ -76,9 +78,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="before playing, wait up to this long until every topic has a subscriber")
     p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing")
 
+    p = sub.add_parser("render", help="top-down animation (GIF or MP4) of recorded episodes from the scene markers")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file recorded with the scene markers on")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--episode", type=int, default=None, metavar="N",
+                       help="the episode numbered N (the 'episode' column of der replay info; default: the last finished)")
+    which.add_argument("--episodes", type=_episode_span, default=None, metavar="A-B",
+                       help="episodes A to B (inclusive) one after the other")
+    p.add_argument("--to", type=Path, required=True, help="output file: .gif (Pillow) or .mp4 (needs imageio-ffmpeg)")
+    p.add_argument("--fps", type=float, default=None, help="frames per second (default: twice real time)")
+    p.add_argument("--window", type=float, default=None, metavar="METRES",
+                   help="side of the view that follows the ego (default: the whole network when it is under 300 m "
+                   "across, as the ring, else 150 m); 0 = always the whole network")
+    p.add_argument("--size", type=int, default=640, metavar="PIXELS", help="width and height of the map (multiple of 16)")
+    p.add_argument("--namespace", default=None, help="graph namespace when a bag holds several")
+
 
 def run(args: argparse.Namespace) -> int:
-    handlers = {"info": _run_info, "plot": _run_plot, "export": _run_export, "train": _run_train, "play": _run_play}
+    handlers = {"info": _run_info, "plot": _run_plot, "export": _run_export, "train": _run_train, "play": _run_play,
+                "render": _run_render}
     with warnings.catch_warnings():
         warnings.simplefilter("always", TruncatedBagWarning)
         warnings.simplefilter("always", DamagedChunkWarning)
@@ -245,6 +263,30 @@ def _run_export(args: argparse.Namespace) -> int:
 
 def _run_train(args: argparse.Namespace) -> int:
     return run_train(args)
+
+
+def _episode_span(text: str) -> tuple[int, int]:
+    """``A-B`` -> (A, B) for ``--episodes``."""
+    first, sep, last = text.partition("-")
+    try:
+        if not sep:
+            raise ValueError
+        return int(first), int(last)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--episodes {text!r}: expected A-B, two episode numbers (e.g. 3-5)") from None
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    try:
+        opts = RenderOptions(width=args.size, height=args.size, fps=args.fps, window=args.window)
+    except ValueError as exc:
+        print(f"der replay render: {exc}", file=sys.stderr)
+        return 2
+    result = render_bag(args.bag, args.to, args.episode, args.episodes, opts, args.namespace)
+    eps = result.episodes
+    which = f"episode {eps[0]}" if len(eps) == 1 else f"episodes {eps[0]}-{eps[-1]}"
+    print(f"{result.path}: {result.frames} frames of {which} in {result.seconds:.1f} s")
+    return 0
 
 
 def _run_play(args: argparse.Namespace) -> int:
