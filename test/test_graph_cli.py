@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from PIL import Image
 from ros_harness import *  # noqa: F403 - ros_domain fixture
 from rosbags.rosbag2 import Reader
 
@@ -122,6 +123,19 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert len(final["episodes"]) == 3 and min(final["seeds"]) >= 1_000_000_000
     assert summary["evaluation"]["episodes"] == 3 and "greedy policy (3 held-out episodes)" in out
     assert f"success {final['summary']['success']:.1%}" in out
+
+    # the scene markers were recorded with every state (and the road once), and the run ends with a GIF of
+    # one greedy episode: the final evaluation's first (same checkpoint, same held-out seed), frame by frame
+    assert c["/scene/vehicles"] == int(bridge["published_states"]) and c["/scene/road"] == 1
+    greedy = summary["greedy_episode"]
+    gif = run_dir / "plots" / "greedy_episode.gif"
+    assert greedy["gif"] == str(gif) and f"  episode:    {gif} (greedy" in out
+    assert out.index("  plots:") < out.index("  episode:") < out.index("  logs:")
+    first = final["episodes"][0]
+    assert (greedy["seed"], greedy["steps"], greedy["outcome"]) == (final["seeds"][0], first["length"], first["outcome"])
+    assert greedy["return"] == pytest.approx(first["ret"])
+    with Image.open(gif) as im:
+        assert im.n_frames == greedy["steps"] + 1
 
     with Reader(bag) as r:
         conns = [x for x in r.connections if x.topic == "/state"]

@@ -8,7 +8,9 @@ the node executables alone.
 
 Order: recorder first (so it is subscribed before any data flows), then agent, then bridge; the
 bridge waits for the agent, runs ``--steps`` decision steps and exits 0, after which the agent
-is stopped (it saves its checkpoint) and the recorder last (it finalises the bag). Ctrl-C does
+is stopped (it saves its checkpoint) and the recorder last (it finalises the bag). Then the trained
+agent is evaluated greedily (:mod:`der_ros.graph.evaluation`) and one greedy episode is recorded
+and rendered to ``plots/greedy_episode.gif`` (:mod:`der_ros.graph.greedy_episode`). Ctrl-C does
 the same stop sequence at any time. If a node dies, the others are stopped and ``der graph``
 exits 1 naming the node and showing the end of its log.
 """
@@ -26,6 +28,7 @@ from pathlib import Path
 import yaml
 
 from der_ros.graph.evaluation import GraphEvaluator
+from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.progress import Progress
 from der_ros.graph.report import bridge_summary, report, snapshot_from_bag
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
@@ -80,7 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=100, help="episodes per periodic evaluation (default 100)")
     parser.add_argument("--final-eval-episodes", type=int, default=300,
                         help="episodes of the evaluation of the trained agent at the end (default 300; 0 = none)")
-    parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots at the end")
+    parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots nor the greedy episode GIF")
+    parser.add_argument("--no-gif", action="store_true",
+                        help="do not record and render the greedy episode GIF at the end (plots/greedy_episode.gif)")
     parser.add_argument("--grace", type=float, default=20.0,
                         help="seconds each node gets to stop after SIGINT before SIGTERM/SIGKILL (default 20)")
 
@@ -188,7 +193,12 @@ def run(args: argparse.Namespace) -> int:
             log.warning("greedy evaluation failed: %s", exc)
         finally:
             evaluator.close()
-    return report(outcome, snap, run_dir, wall, args, params, bridge, final)
+    greedy = None
+    if outcome.ok and not (args.no_plots or args.no_gif) and (run_dir / "agent.pt").is_file():
+        print("der graph: recording and rendering one greedy episode of the trained agent ...", file=sys.stderr,
+              flush=True)  # fmt: skip
+        greedy = greedy_episode_gif(run_dir, run_dir / "agent.pt", params)
+    return report(outcome, snap, run_dir, wall, args, params, bridge, final, greedy)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,7 @@ from der_ros.bag.plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.bag.writer import read_episode_summary
 from der_ros.contract import COMMAND, EPISODE_COLLISION, EPISODE_START, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
+from der_ros.graph.greedy_episode import GreedyEpisode
 from der_ros.graph.progress import ProgressSnapshot
 from der_ros.graph.runner import RunOutcome
 from der_ros.train.evaluation import EvalResult
@@ -118,7 +119,8 @@ def _replay_text(params: dict[str, Any]) -> str:
 
 
 def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wall: float, args: argparse.Namespace,
-           params: dict[str, Any], bridge: dict[str, float], evaluation: EvalResult | None = None) -> int:
+           params: dict[str, Any], bridge: dict[str, float], evaluation: EvalResult | None = None,
+           greedy: GreedyEpisode | None = None) -> int:
     """Write ``summary.json`` and the plots, print the table and the paths; returns the exit code
     (0 finished, 130 interrupted, 1 failed)."""
     bag = run_dir / "bag"
@@ -143,6 +145,9 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
         "plots": [str(p) for p in plots],
         "logs": str(run_dir / "logs"),
         "evaluation": evaluation.summary() if evaluation is not None else None,
+        "greedy_episode": None if greedy is None else {
+            "gif": str(greedy.gif), "bag": str(greedy.bag), "seed": greedy.seed, "steps": greedy.steps,
+            "return": greedy.ret, "outcome": greedy.outcome},
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
 
@@ -182,6 +187,8 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
     print(f"  checkpoint: {summary['checkpoint'] or '-'}")
     for i, plot in enumerate(summary["plots"] or ["-"]):
         print(f"  {'plots:' if i == 0 else '':<11} {plot}")
+    if greedy is not None:
+        print(f"  episode:    {greedy.gif} ({greedy.describe()})")
     print(f"  logs:       {summary['logs']}")
     if (run_dir / "evaluations.csv").is_file():
         print(f"  evaluation: {run_dir / 'evaluations.csv'}" + (f", {run_dir / 'evaluation.json'}" if evaluation else ""))
