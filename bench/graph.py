@@ -10,16 +10,25 @@ Runs, on the ring scenario with the agent/replay settings of ``config/graph.para
    command answering it received) and exits.
 3. ``graph_eval``: the same graph with the agent in evaluation mode (acting only, no learning),
    which isolates the transport + executor round trip from the gradient step.
+4. ``graph_no_markers``: the training graph with the bridge's scene markers off (``markers:=false``;
+   on by default: every vehicle on ``scene/vehicles`` each step), run right before the training
+   graph, so the two differ only in the markers: what the scene costs the graph. First of all, in
+   one process, the marker work itself: env steps with and without the scene's subscriptions, and
+   ``env.scene()`` + encoding per step (``scene_*``).
+
+``--record`` adds the recorder node (all default topics, so the markers too when they are on) to
+both training graphs: the cost of recording them as well (a third process on two cores).
 
 The in-process loop calls the learner in the node's order (observe, act, then learn), with the
 params file's scenario and seeds, so both runs make the same decisions: ``graph_episodes`` and
 ``inprocess_episodes`` agree when no command timed out.
 
 Ends with one JSON line: graph_steps_per_s, inprocess_steps_per_s, graph_ratio,
-roundtrip_p50_ms, roundtrip_p99_ms (training graph), eval_roundtrip_p50_ms/p99_ms, the eval
-graph's steps/s, episode counts. Targets: graph >= 60% of in-process, round-trip p50 <= 1 ms.
+roundtrip_p50_ms, roundtrip_p99_ms (training graph, markers on), the same for the graph without
+markers (no_markers_*), eval_roundtrip_p50_ms/p99_ms, the eval graph's steps/s, episode counts.
+Targets: graph >= 60% of in-process (the README's reference run: 0.85), round-trip p50 <= 1 ms.
 
-    .venv/bin/python bench/graph.py [--steps 3000] [--quick]
+    .venv/bin/python bench/graph.py [--steps 3000] [--quick] [--record]
 """
 
 from __future__ import annotations
@@ -102,6 +111,46 @@ def run_inprocess(steps: int, overrides: dict) -> tuple[float, int]:
     return rate, episodes
 
 
+def scene_cost(steps: int, network: str = "ring") -> dict:
+    """The bridge's marker work per decision step, in one process: env steps with the scene's position
+    subscriptions vs without (SUMO side), and ``env.scene()`` + the CDR encoding (what the bridge adds
+    per published state). The two envs alternate in blocks of 50 steps (one libsumo env at a time);
+    medians over blocks, so a burst of load on the shared machine does not decide the figure."""
+    import statistics
+
+    from der_ros.bag.scene_cdr import vehicle_markers_cdr
+    from sumo_bridge.lane_change_env import LaneChangeEnv
+    from sumo_bridge.scenario import ScenarioConfig
+
+    cfg = (ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban)(max_episode_steps=50)
+    blocks: dict[str, list[float]] = {"off": [], "on": [], "markers": []}
+    vehicles = 0
+    for block in range(max(2, steps // 50)):
+        mode = "on" if block % 2 else "off"
+        env = LaneChangeEnv(cfg)
+        if mode == "on":
+            env.enable_scene()
+        env.reset(seed=1_000_000_000 + block // 2)
+        stepping = marking = 0.0
+        for k in range(50):
+            t0 = time.perf_counter()
+            env.step(0)  # 50 decisions = one episode: no reset inside the block
+            t1 = time.perf_counter()
+            stepping += t1 - t0
+            if mode == "on":
+                scene = env.scene()
+                vehicle_markers_cdr(scene.vehicles, scene.removed, k, "map")
+                marking += time.perf_counter() - t1
+                vehicles = len(scene.vehicles)
+        env.close()
+        blocks[mode].append(stepping / 50)
+        if mode == "on":
+            blocks["markers"].append(marking / 50)
+    us = {k: round(1e6 * statistics.median(v), 1) for k, v in blocks.items()}
+    return {"env_step_us_scene_off": us["off"], "env_step_us_scene_on": us["on"], "markers_us_per_step": us["markers"],
+            "vehicles": vehicles}
+
+
 def _param_args(params: dict) -> list[str]:
     out = []
     for k, v in params.items():
@@ -112,8 +161,9 @@ def _param_args(params: dict) -> list[str]:
     return out
 
 
-def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path) -> dict:
-    """Start agent + bridge, wait for the bridge to finish, return its summary."""
+def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, markers: bool = True,
+              record: bool = False) -> dict:  # fmt: skip
+    """Start (recorder +) agent + bridge, wait for the bridge to finish, return its summary."""
     from der_ros.graph.runner import reserve_domain_id
 
     lease = reserve_domain_id()  # same lock files as the test harness: never a shared domain
@@ -121,16 +171,24 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path) 
                OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     agent_params = {**agent_overrides, "evaluate": evaluate, "checkpoint_out": str(workdir / "agent.pt")}
     procs = []
+    tag = ("_eval" if evaluate else "") + ("" if markers else "_no_markers") + ("_record" if record else "")
     try:
-        agent_log = open(workdir / f"agent{'_eval' if evaluate else ''}.log", "wb")  # noqa: SIM115
-        bridge_log_path = workdir / f"bridge{'_eval' if evaluate else ''}.log"
+        agent_log = open(workdir / f"agent{tag}.log", "wb")  # noqa: SIM115
+        bridge_log_path = workdir / f"bridge{tag}.log"
         bridge_log = open(bridge_log_path, "wb")  # noqa: SIM115
         base = [sys.executable, "-m"]
         ros = ["--ros-args", "--params-file", str(PARAMS_FILE)]
+        bridge_params = {"max_steps": steps, "command_timeout": 5.0, "markers": markers}
+        if record:
+            rec_log = open(workdir / f"recorder{tag}.log", "wb")  # noqa: SIM115
+            procs.append(subprocess.Popen(
+                base + ["der_ros.nodes.recorder_node"] + ros + _param_args({"output": str(workdir / f"bag{tag}")}),
+                env=env, stdout=rec_log, stderr=subprocess.STDOUT, start_new_session=True))  # fmt: skip
+            bridge_params["min_subscribers"] = 2  # agent and recorder, as der graph does
         procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + _param_args(agent_params),
                                       env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
         bridge = subprocess.Popen(
-            base + ["der_ros.nodes.bridge_node"] + ros + _param_args({"max_steps": steps, "command_timeout": 5.0}),
+            base + ["der_ros.nodes.bridge_node"] + ros + _param_args(bridge_params),
             env=env, stdout=bridge_log, stderr=subprocess.STDOUT, start_new_session=True)
         procs.append(bridge)
         code = bridge.wait(timeout=60 + steps / 20)
@@ -157,14 +215,19 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000, help="environment steps per run")
     parser.add_argument("--quick", action="store_true", help="600 steps, small learning_starts (smoke run)")
+    parser.add_argument("--record", action="store_true", help="run the recorder node in both training graphs too")
     args = parser.parse_args()
     steps = 600 if args.quick else args.steps
     overrides = {"agent.learning_starts": 100} if args.quick else {}
     workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
+    scene = scene_cost(400 if args.quick else 1000)
+    print(f"scene markers in one process (ring): {json.dumps(scene)}", file=sys.stderr)
     inproc, inproc_episodes = run_inprocess(steps, overrides)
     print(f"in-process: {inproc:.1f} steps/s, {inproc_episodes} episodes", file=sys.stderr)
-    graph = run_graph(steps, overrides, evaluate=False, workdir=workdir)
-    print(f"graph (training): {json.dumps(graph)}", file=sys.stderr)
+    plain = run_graph(steps, overrides, evaluate=False, workdir=workdir, markers=False, record=args.record)
+    print(f"graph (training, markers off): {json.dumps(plain)}", file=sys.stderr)
+    graph = run_graph(steps, overrides, evaluate=False, workdir=workdir, record=args.record)
+    print(f"graph (training, markers on): {json.dumps(graph)}", file=sys.stderr)
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
     print(f"graph (evaluation mode): {json.dumps(graph_eval)}", file=sys.stderr)
     result = {
@@ -176,6 +239,13 @@ def main() -> int:
         "roundtrip_p50_ms": round(graph["roundtrip_p50_ms"], 3),
         "roundtrip_p99_ms": round(graph["roundtrip_p99_ms"], 3),
         "timeouts": graph["commands/timeouts"],
+        "recorder": args.record,
+        "no_markers_graph_steps_per_s": round(plain["steps_per_s"], 1),
+        "no_markers_graph_ratio": round(plain["steps_per_s"] / inproc, 3),
+        "no_markers_roundtrip_p50_ms": round(plain["roundtrip_p50_ms"], 3),
+        "markers_cost": round(1.0 - graph["steps_per_s"] / plain["steps_per_s"], 3),
+        "bridge_busy_fraction_no_markers": round(plain["busy_fraction"], 3),
+        **{f"scene_{k}": v for k, v in scene.items()},
         "graph_episodes": int(graph["episodes_started"]),
         "inprocess_episodes": inproc_episodes,
         "graph_bridge_busy_fraction": round(graph["busy_fraction"], 3),

@@ -73,8 +73,8 @@ Neighbours come from one context subscription on the ego (lanes -1/0/+1, up- and
 per step; the mean speed from per-vehicle speed subscriptions (one read per step); departures
 and collisions from a simulation subscription, so on traci a step is one round trip.
 
-Viewers: :meth:`LaneChangeEnv.enable_scene` widens the per-vehicle subscriptions to position,
-angle and size, and :meth:`LaneChangeEnv.scene` / :meth:`LaneChangeEnv.lanes` give every vehicle
+Viewers: :meth:`LaneChangeEnv.enable_scene` widens the per-vehicle subscriptions to position
+and angle, and :meth:`LaneChangeEnv.scene` / :meth:`LaneChangeEnv.lanes` give every vehicle
 and the road (:mod:`sumo_bridge.scene`, the core of the bridge's marker topics). Off by default:
 training does not pay for it.
 
@@ -267,6 +267,8 @@ class LaneChangeEnv(gym.Env):
         assert self._rng is not None
         sumo_seed = int(self._rng.integers(0, 2**31 - 1))
         self.sim.load(self._sumo_args(sumo_seed))
+        if self._scene is not None:
+            self._scene.forget_sizes()
         # departures and collisions arrive with every step's answer (no extra round trip on traci)
         self.api.simulation.subscribe([_V_DEPARTED, _V_COLLIDING])
         self._ego_present = False
@@ -603,12 +605,13 @@ class LaneChangeEnv(gym.Env):
 
     # ------------------------------------------------------------------ scene (viewers)
     def enable_scene(self) -> None:
-        """Subscribe every vehicle to position, angle and size from now on, so that :meth:`scene`
-        costs no extra call per vehicle. Vehicles already running are re-subscribed."""
+        """Subscribe every vehicle to position and angle from now on, so that :meth:`scene` costs no
+        extra call per vehicle and step (sizes: one call per vehicle). Running vehicles are re-subscribed."""
         if self._scene is not None:
             return
         self._vehicle_vars = SCENE_VARS
-        self._scene = SceneTracker()
+        vehicle = self.api.vehicle
+        self._scene = SceneTracker(lambda vid: (float(vehicle.getLength(vid)), float(vehicle.getWidth(vid))))
         for vid in self.api.vehicle.getIDList():
             self.api.vehicle.subscribe(vid, SCENE_VARS)
         self._vehicle_results = None  # read afresh: the last results lack the new variables

@@ -35,7 +35,7 @@ def ring() -> Iterator[LaneChangeEnv]:
 
 def decoded(scene: Scene, stamp: int = 0) -> ct.SceneUpdate:
     """The scene through the marker bytes and back (rosbags decoding)."""
-    data = vehicle_markers_cdr(scene.markers(), scene.removed, stamp)
+    data = vehicle_markers_cdr(scene.vehicles, scene.removed, stamp)
     return ct.parse_vehicle_markers(TS.deserialize_cdr(data, MARKERS))
 
 

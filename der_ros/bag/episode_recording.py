@@ -77,7 +77,7 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
             writer.write_message(REWARD, t + _AT_REWARD, reward_message(t, reward, terminated, truncated, applied))
             writer.write_message(STATE, t + _AT_STATE, state_message(t, info["points"], POINT_FIELDS))
             scene = env.scene()
-            writer.write(SCENE_VEHICLES, t + _AT_SCENE, vehicle_markers_cdr(scene.markers(), scene.removed, t, frame_id))
+            writer.write(SCENE_VEHICLES, t + _AT_SCENE, vehicle_markers_cdr(scene.vehicles, scene.removed, t, frame_id))
             if terminated or truncated:
                 event = info.get("event") or (EPISODE_TIME_LIMIT if truncated else EPISODE_COLLISION)
                 writer.mark_episode(t + _AT_END, episode=episode, event=event, steps=k, ret=ret,

@@ -7,6 +7,12 @@ arriving there and the action taken from there (``reward`` and ``lane_change_cmd
 :mod:`der_ros.contract`). Episodes come from :func:`der_ros.bag.episodes.scan_bag`, so they are
 numbered as ``der replay info`` shows them.
 
+The bridge puts every vehicle into every ``scene/vehicles`` message (plus a DELETE for each one
+gone), so the scene of a step needs no message before its episode: messages stamped before the
+chosen episodes are skipped without decoding (their stamp read from the CDR header,
+:func:`der_ros.bag.scene_cdr.first_stamp_ns`), which keeps rendering one episode of a long urban
+bag (~220 markers a step) from decoding all of them.
+
 A bag recorded without markers (bridge ``markers:=false`` or recorder ``record_scene:=false``)
 has nothing to draw: :class:`~der_ros.bag.reader.BagError` says so and how to record one.
 """
@@ -18,6 +24,7 @@ from dataclasses import dataclass, field
 
 from der_ros.bag.episodes import EpisodeSummary, resolve_topics, scan_bag
 from der_ros.bag.reader import BagError, BagReader
+from der_ros.bag.scene_cdr import first_stamp_ns
 from der_ros.contract import (
     COMMAND,
     REWARD,
@@ -128,6 +135,7 @@ def read_scene(reader: BagReader, episode: int | None = None, span: tuple[int, i
     except ValueError as exc:
         raise BagError(reader.path, None, str(exc)) from None
     ranges = [(e.start_ns, e.end_ns) for e in chosen]
+    first_start = min(lo for lo, _ in ranges)
 
     def wanted(stamp: int) -> bool:
         return any(lo <= stamp <= hi for lo, hi in ranges)
@@ -143,6 +151,9 @@ def read_scene(reader: BagReader, episode: int | None = None, span: tuple[int, i
         topic = msg.topic
         try:
             if topic == t_vehicles:
+                first = first_stamp_ns(msg.data)
+                if first is not None and first < first_start:
+                    continue
                 update = parse_vehicle_markers(msg.decode())
                 if update.delete_all:
                     current.clear()

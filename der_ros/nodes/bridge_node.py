@@ -176,7 +176,7 @@ class BridgeNode(Node):
     def _publish_scene(self, stamp: int) -> None:
         assert self.pub_vehicles is not None
         scene = self.env.scene()
-        self.pub_vehicles.publish(vehicle_markers_cdr(scene.markers(), scene.removed, stamp, self.cfg.map_frame))
+        self.pub_vehicles.publish(vehicle_markers_cdr(scene.vehicles, scene.removed, stamp, self.cfg.map_frame))
 
     # -- start-up --------------------------------------------------------------------------------
     def _maybe_start(self) -> None:
