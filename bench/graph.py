@@ -28,7 +28,10 @@ roundtrip_p50_ms, roundtrip_p99_ms (training graph, markers on), the same for th
 markers (no_markers_*), eval_roundtrip_p50_ms/p99_ms, the eval graph's steps/s, episode counts.
 Targets: graph >= 60% of in-process (the README's reference run: 0.85), round-trip p50 <= 1 ms.
 
-    .venv/bin/python bench/graph.py [--steps 3000] [--quick] [--record]
+``--pairs N`` alternates the graphs without and with markers N times and reports the median run
+of each (one pair on a loaded machine can be off by 30% either way).
+
+    .venv/bin/python bench/graph.py [--steps 3000] [--quick] [--record] [--pairs N]
 """
 
 from __future__ import annotations
@@ -211,11 +214,19 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, 
         lease.release()
 
 
+def _median_run(runs: list[dict]) -> dict:
+    """The run with the median steps/s (its own round trip and busy fraction come with it)."""
+    return sorted(runs, key=lambda r: r["steps_per_s"])[len(runs) // 2]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000, help="environment steps per run")
     parser.add_argument("--quick", action="store_true", help="600 steps, small learning_starts (smoke run)")
     parser.add_argument("--record", action="store_true", help="run the recorder node in both training graphs too")
+    parser.add_argument("--pairs", type=int, default=1,
+                        help="training graphs without / with markers, alternately, this many times each (medians "
+                        "reported; on a shared machine one pair can differ by 30%% either way)")
     args = parser.parse_args()
     steps = 600 if args.quick else args.steps
     overrides = {"agent.learning_starts": 100} if args.quick else {}
@@ -224,10 +235,15 @@ def main() -> int:
     print(f"scene markers in one process (ring): {json.dumps(scene)}", file=sys.stderr)
     inproc, inproc_episodes = run_inprocess(steps, overrides)
     print(f"in-process: {inproc:.1f} steps/s, {inproc_episodes} episodes", file=sys.stderr)
-    plain = run_graph(steps, overrides, evaluate=False, workdir=workdir, markers=False, record=args.record)
-    print(f"graph (training, markers off): {json.dumps(plain)}", file=sys.stderr)
-    graph = run_graph(steps, overrides, evaluate=False, workdir=workdir, record=args.record)
-    print(f"graph (training, markers on): {json.dumps(graph)}", file=sys.stderr)
+    plains, graphs = [], []
+    for pair in range(max(1, args.pairs)):
+        pair_dir = workdir / f"pair{pair}"
+        pair_dir.mkdir()
+        plains.append(run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=False, record=args.record))
+        print(f"graph (training, markers off): {json.dumps(plains[-1])}", file=sys.stderr)
+        graphs.append(run_graph(steps, overrides, evaluate=False, workdir=pair_dir, record=args.record))
+        print(f"graph (training, markers on): {json.dumps(graphs[-1])}", file=sys.stderr)
+    plain, graph = _median_run(plains), _median_run(graphs)
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
     print(f"graph (evaluation mode): {json.dumps(graph_eval)}", file=sys.stderr)
     result = {
@@ -240,6 +256,9 @@ def main() -> int:
         "roundtrip_p99_ms": round(graph["roundtrip_p99_ms"], 3),
         "timeouts": graph["commands/timeouts"],
         "recorder": args.record,
+        "pairs": len(graphs),
+        "graph_steps_per_s_runs": [round(r["steps_per_s"], 1) for r in graphs],
+        "no_markers_graph_steps_per_s_runs": [round(r["steps_per_s"], 1) for r in plains],
         "no_markers_graph_steps_per_s": round(plain["steps_per_s"], 1),
         "no_markers_graph_ratio": round(plain["steps_per_s"] / inproc, 3),
         "no_markers_roundtrip_p50_ms": round(plain["roundtrip_p50_ms"], 3),

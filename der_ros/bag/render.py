@@ -175,12 +175,13 @@ def draw_frame(lanes: list[LaneLine], frame: Frame, view: View, opts: RenderOpti
     """One frame: background, road, vehicles (ego last, outlined), caption band."""
     img = Image.new("RGB", (opts.width, opts.height + opts.caption_height), BACKGROUND)
     draw = ImageDraw.Draw(img)
-    half_w = 0.5 * opts.width / view.scale  # cull lanes far outside the map area
-    cx, cy = view.x0 + half_w, view.y1 - 0.5 * opts.height / view.scale
-    reach = math.hypot(half_w, 0.5 * opts.height / view.scale)
+    # the map area in world coordinates, with a lane's width to spare: lanes wholly outside are skipped
+    x_lo, y_hi = view.x0, view.y1
+    x_hi, y_lo = x_lo + opts.width / view.scale, y_hi - opts.height / view.scale
     for lane in lanes:
         pts = lane.points
-        if (abs(pts[:, 0] - cx).min() > reach + 200.0) or (abs(pts[:, 1] - cy).min() > reach + 200.0):
+        lo, hi = pts.min(axis=0) - lane.width, pts.max(axis=0) + lane.width
+        if hi[0] < x_lo or lo[0] > x_hi or hi[1] < y_lo or lo[1] > y_hi:
             continue
         width = max(1, int(round(lane.width * view.scale)) - 2)  # a 2-pixel gap between lanes
         draw.line([view.project(float(x), float(y)) for x, y in pts], fill=ROAD, width=width, joint="curve")
