@@ -48,7 +48,7 @@ __all__ = [
     "parse_key_values", "format_value", "episode_values", "parse_episode_events", "diagnostics_to_metrics",
     # the scene markers (visualization_msgs/MarkerArray)
     "MARKER_CUBE", "MARKER_LINE_STRIP", "MARKER_ADD", "MARKER_DELETE", "MARKER_DELETEALL", "VEHICLE_NS", "LANE_NS",
-    "VEHICLE_HEIGHT", "SCENE_ROLES", "TRAFFIC_ROLE", "ROLE_COLOURS", "LANE_COLOUR", "VehicleMarker", "LaneLine",
+    "VEHICLE_HEIGHT", "SCENE_ROLES", "EGO_ROLE", "TRAFFIC_ROLE", "ROLE_COLOURS", "LANE_COLOUR", "VehicleMarker", "LaneLine",
     "SceneUpdate", "yaw_quaternion", "role_of_colour", "parse_vehicle_markers", "parse_road_markers",
 ]
 
@@ -609,17 +609,19 @@ MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL = 0, 2, 3
 VEHICLE_NS, LANE_NS = "vehicles", "lanes"
 #: height (z size) of a vehicle's cube, m; its centre sits at half this height
 VEHICLE_HEIGHT = 1.5
+#: the learning vehicle
+EGO_ROLE = "ego"
 #: a vehicle that is neither the ego nor in a neighbour slot
 TRAFFIC_ROLE = "traffic"
 #: the role of a vehicle in the scene: the ego, one of the observation's neighbour slots
 #: (``sumo_bridge.observation.SLOT_NAMES``, in order), or other traffic
-SCENE_ROLES: tuple[str, ...] = ("ego", "leader", "follower", "left_leader", "left_follower", "right_leader",
+SCENE_ROLES: tuple[str, ...] = (EGO_ROLE, "leader", "follower", "left_leader", "left_follower", "right_leader",
                                 "right_follower", TRAFFIC_ROLE)  # fmt: skip
 #: RGBA of each role: the ego red, the slots of the current lane orange/yellow, of the left lane
 #: greens, of the right lane blues (leaders darker than followers), traffic grey. A viewer tells
 #: the roles apart by colour alone, and :func:`role_of_colour` reads a role back from a marker.
 ROLE_COLOURS: dict[str, tuple[float, float, float, float]] = {
-    "ego": (0.85, 0.10, 0.10, 1.0),
+    EGO_ROLE: (0.85, 0.10, 0.10, 1.0),
     "leader": (1.0, 0.55, 0.0, 1.0),
     "follower": (0.95, 0.80, 0.15, 1.0),
     "left_leader": (0.05, 0.55, 0.20, 1.0),

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.contract import SCENE_ROLES, TRAFFIC_ROLE, LaneLine, VehicleMarker
+from der_ros.contract import EGO_ROLE, SCENE_ROLES, TRAFFIC_ROLE, LaneLine, VehicleMarker
 from sumo_bridge.observation import SLOT_NAMES
 from sumo_bridge.sim_backend import constants
 
@@ -44,7 +44,7 @@ _RAD = math.pi / 180.0
 #: per-vehicle subscription of an env with the scene enabled (speed first: the reward reads it)
 SCENE_VARS: list[int] = [_V_SPEED, _V_POS, _V_ANGLE]
 # the contract's roles are the ego, the observation's slots in order, and traffic
-assert SCENE_ROLES == ("ego", *SLOT_NAMES, TRAFFIC_ROLE)
+assert SCENE_ROLES == (EGO_ROLE, *SLOT_NAMES, TRAFFIC_ROLE)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ class SceneTracker:
         enabled) are skipped.
         """
         roles = {vid: slot for slot, vid in slots.items() if vid is not None}
-        roles[ego_id] = "ego"
+        roles[ego_id] = EGO_ROLE
         ids, sizes = self._ids, self._sizes
         vehicles = []
         for vid, var in results.items():

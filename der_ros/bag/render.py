@@ -28,7 +28,7 @@ from PIL import Image, ImageDraw, ImageFont
 from der_ros.bag.animation import check_output, write_animation
 from der_ros.bag.reader import BagReader
 from der_ros.bag.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
-from der_ros.contract import LANE_COLOUR, ROLE_COLOURS, LaneLine, VehicleMarker
+from der_ros.contract import EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
 from sumo_bridge.lane_change_env import ACTION_MEANINGS
 
 __all__ = ["RenderOptions", "View", "RenderResult", "network_view", "follow_view", "frame_view", "draw_frame",
@@ -187,12 +187,12 @@ def draw_frame(lanes: list[LaneLine], frame: Frame, view: View, opts: RenderOpti
         draw.line([view.project(float(x), float(y)) for x, y in pts], fill=ROAD, width=width, joint="curve")
     ego = None
     for v in frame.vehicles:
-        if v.role == "ego":
+        if v.role == EGO_ROLE:
             ego = v
             continue
-        draw.polygon(_corners(v, view), fill=ROLE_RGB.get(v.role, ROLE_RGB["traffic"]), outline=OUTLINE)
+        draw.polygon(_corners(v, view), fill=ROLE_RGB.get(v.role, ROLE_RGB[TRAFFIC_ROLE]), outline=OUTLINE)
     if ego is not None:
-        draw.polygon(_corners(ego, view), fill=ROLE_RGB["ego"], outline=OUTLINE, width=2)
+        draw.polygon(_corners(ego, view), fill=ROLE_RGB[EGO_ROLE], outline=OUTLINE, width=2)
     if caption is not None and opts.caption_height:
         _draw_caption(draw, frame, opts, caption)
     return img

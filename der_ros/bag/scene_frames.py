@@ -27,6 +27,7 @@ from der_ros.bag.reader import BagError, BagReader
 from der_ros.bag.scene_cdr import first_stamp_ns
 from der_ros.contract import (
     COMMAND,
+    EGO_ROLE,
     REWARD,
     SCENE_ROAD,
     SCENE_VEHICLES,
@@ -61,7 +62,7 @@ class Frame:
     action: int | None
 
     def ego(self) -> VehicleMarker | None:
-        return next((v for v in self.vehicles if v.role == "ego"), None)
+        return next((v for v in self.vehicles if v.role == EGO_ROLE), None)
 
 
 @dataclass
