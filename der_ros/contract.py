@@ -38,7 +38,7 @@ __all__ = [
     # status names, events, prefixes
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
-    "APPLIED_ACTION_PREFIX", "POINTFIELD_FLOAT64",
+    "APPLIED_ACTION_PREFIX", "POINTFIELD_FLOAT64", "ACTION_NAMES",
     # QoS and the topic table
     "QosSpec", "TopicSpec", "TOPICS", "RELIABLE_VOLATILE", "SENSOR_DATA", "topic_spec", "topic_by_name",
     "default_record_topics", "topics_markdown", "parse_qos_profiles", "merged_qos", "qos_text",
@@ -81,6 +81,9 @@ EPISODE_START = "start"
 EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT = "success", "collision", "time_limit"
 EPISODE_ENDS = (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT)
 EPISODE_EVENTS = (EPISODE_START, *EPISODE_ENDS)
+
+#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``)
+ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right")
 
 #: ``reward.header.frame_id`` = this prefix + the action the bridge applied to reach the state
 APPLIED_ACTION_PREFIX = "applied_action="

@@ -17,7 +17,8 @@ from der_ros.bag.episodes import EpisodeSummary
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.bag.render import PALETTE, ROLE_RGB, RenderOptions, frame_view, render_bag
 from der_ros.bag.scene_frames import read_scene, select_episodes
-from sumo_bridge.lane_change_env import LaneChangeEnv
+from der_ros.contract import ACTION_NAMES
+from sumo_bridge.lane_change_env import ACTION_MEANINGS, LaneChangeEnv
 from sumo_bridge.scenario import ScenarioConfig
 
 #: keep for three steps, change left, then keep: a lane change to see
@@ -75,6 +76,7 @@ def test_one_frame_per_step_with_the_ego_drawn_where_it_was(tmp_path: Path, netw
 
 
 def test_episode_choice_and_the_caption_numbers(tmp_path: Path) -> None:
+    assert ACTION_NAMES == ACTION_MEANINGS  # the caption names actions as the env does
     summaries = [EpisodeSummary(i, 10 + i, 0, 0, 5, 0.0, 0, "success" if i < 2 else "incomplete", 0.0, "event")
                  for i in range(3)]  # fmt: skip
     assert [e.episode for e in select_episodes(summaries)] == [11]  # the last finished one

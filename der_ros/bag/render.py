@@ -28,8 +28,7 @@ from PIL import Image, ImageDraw, ImageFont
 from der_ros.bag.animation import check_output, write_animation
 from der_ros.bag.reader import BagReader
 from der_ros.bag.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
-from der_ros.contract import EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
-from sumo_bridge.lane_change_env import ACTION_MEANINGS
+from der_ros.contract import ACTION_NAMES, EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
 
 __all__ = ["RenderOptions", "View", "RenderResult", "network_view", "follow_view", "frame_view", "draw_frame",
            "render_recording", "render_bag", "Caption", "PALETTE"]  # fmt: skip
@@ -205,8 +204,8 @@ def _draw_caption(draw: ImageDraw.ImageDraw, frame: Frame, opts: RenderOptions, 
     n_steps = len(ep.frames) - 1
     line1 = (f"{cap.title}   episode {ep.label}   step {frame.step}/{n_steps}   "
              f"t = {frame.step * cap.step_seconds:.1f} s")  # fmt: skip
-    action = "-" if frame.action is None else ACTION_MEANINGS[frame.action] if 0 <= frame.action < len(
-        ACTION_MEANINGS) else str(frame.action)  # fmt: skip
+    action = "-" if frame.action is None else ACTION_NAMES[frame.action] if 0 <= frame.action < len(
+        ACTION_NAMES) else str(frame.action)  # fmt: skip
     reward = "-" if frame.reward is None else f"{frame.reward:+.2f}"
     outcome = ep.summary.outcome if last else "..."
     line2 = f"action {action}   reward {reward}   return {frame.ret:+.2f}   outcome {outcome}"
