@@ -75,9 +75,9 @@ seeded positions, ``warmup_seconds`` (5 s = 50 SUMO steps) of traffic -- costs 8
 every vehicle goes back to its lane, position, speed and keep-right urge at the end of that
 build's warm-up, the ego's lane exactly, the other lane rotated around the ring by a fresh
 uniform offset (a build draws each lane's offset independently and uniformly, so a rotation is
-as likely as the recorded one), then one SUMO step runs, as after the build's warm-up. That
-takes 0.3-0.9 ms (more under load; ``bench/train_loop.py`` reports the stream's
-``reset_ms_p50``). Leaving the traffic running and replacing only the ego (as on the urban
+as likely as the recorded one), then one SUMO step runs, as after the build's warm-up. A
+re-placement's median was 0.77-0.90 ms on the 2-core machine at load 4-8, where builds took
+20-45 ms (``bench/train_loop.py`` reports the stream's ``reset_ms_p50``). Leaving the traffic running and replacing only the ego (as on the urban
 network) would be cheaper still but changes the task: within one episode the lanes equalise
 (7-11 / 15-21 vehicles become ~14 / 14), and the ego then starts beside a sparse inner lane whose
 vehicles drive 11-12 m/s instead of 7 (KS statistics 0.3-0.7 against a build's first observations).
