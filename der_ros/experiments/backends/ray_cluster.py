@@ -205,22 +205,30 @@ class RayBackend(Backend):
         if not specs:
             return []
         ray = import_ray()
-        owned = not ray.is_initialized()
-        if owned:
-            self._connect(ray)
-        try:
+        if ray.is_initialized():  # the caller's Ray (a test, a notebook): used as it is, left running
             return _Driver(ray, self, specs, emit).run()
-        finally:
-            if owned:
-                ray.shutdown()
+        with self._connected(ray):
+            return _Driver(ray, self, specs, emit).run()
 
-    def _connect(self, ray: Any) -> None:
+    @contextmanager
+    def _connected(self, ray: Any) -> Iterator[None]:
+        """Join the cluster at ``address``, or start a Ray instance on this machine (loopback only,
+        ``address="local"``: never one of another user found running here); disconnect at the end."""
         if self.address:
             log.info("connecting to the Ray cluster at %s", self.address)
             ray.init(address=self.address, logging_level=logging.WARNING)
+            try:
+                yield
+            finally:
+                ray.shutdown()
             return
         with loopback_ray():
-            ray.init(num_cpus=self.num_cpus or default_jobs(), include_dashboard=False, logging_level=logging.WARNING)
+            ray.init(address="local", num_cpus=self.num_cpus or default_jobs(), include_dashboard=False,
+                     logging_level=logging.WARNING)  # fmt: skip
+            try:
+                yield
+            finally:
+                ray.shutdown()
 
     def task_options(self, config: Mapping[str, Any]) -> dict[str, Any]:
         """Ray options of one run's task: its resources, and no Ray-side retries (ours resume)."""
