@@ -136,6 +136,7 @@ def test_killed_worker_is_retried_from_its_checkpoint(tmp_path: Path, ray_two_cp
     assert "WorkerCrashedError" in str(retry[0].error)
     restarted = [e for e in events if e.kind == "started" and e.spec.seed == 0]
     assert [e.attempt for e in restarted] == [0, 1] and restarted[1].where["pid"] != killed[0][0]
+    assert not Path(restarted[0].where["workdir"]).exists()  # the killed worker's folder was cleaned up
     # the retried run equals an uninterrupted run of the same seed
     reference = plan_runs(CARTPOLE, methods, [0], tmp_path / "local", small)
     run_specs(reference, backend=LocalBackend(1))
@@ -146,12 +147,20 @@ def test_a_run_lost_more_often_than_allowed_is_reported(tmp_path: Path, ray_two_
     methods = methods_by_name(["dqn"])
     specs = plan_runs(CARTPOLE, methods, [0], tmp_path, small_cartpole(3000, **{"train.eval_interval": 0}))
 
+    workdirs: list[str] = []
+
     def kill_every_attempt(event: RunEvent) -> None:
         if event.kind == "started":
+            workdirs.append(event.where["workdir"])
             os.kill(event.where["pid"], signal.SIGKILL)
 
-    with pytest.raises(SuiteRunError) as err:
-        run_specs(specs, backend=RayBackend(max_retries=1), on_event=kill_every_attempt)
+    try:
+        with pytest.raises(SuiteRunError) as err:
+            run_specs(specs, backend=RayBackend(max_retries=1), on_event=kill_every_attempt)
+    finally:  # the last killed worker's folder waits for the next run on the node: none comes
+        for w in workdirs:
+            shutil.rmtree(w, ignore_errors=True)
+    assert len(workdirs) == 2
     text = str(err.value)
     assert "1 run(s) failed" in text and "dqn/seed0" in text
     assert "WorkerCrashedError" in text and "worker lost 2 times; --max-retries 1" in text

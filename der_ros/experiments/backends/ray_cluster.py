@@ -41,6 +41,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import psutil
+
 from der_ros.experiments.backends.artifacts import (
     ARTIFACT_LEVELS,
     RESUME_FILES,
@@ -57,6 +59,8 @@ __all__ = ["RayBackend", "RayRunTask", "execute_run", "loopback_ray", "import_ra
 
 log = logging.getLogger(__name__)
 
+#: a worker's run folder: <tmp>/der-ray-run-<pid>-<random>
+WORKDIR_PREFIX = "der-ray-run-"
 #: seconds between two looks at the mailbox while waiting for runs
 POLL_S = 0.2
 #: after Ctrl-C, how long runs in progress get to return (those that saw the SIGINT stop at once
@@ -127,14 +131,24 @@ def _send(task: RayRunTask, kind: str, where: dict[str, Any], step: int | None =
     task.mailbox.put((kind, task.spec.run_dir, task.attempt, where, step, files))
 
 
+def _remove_orphans() -> None:
+    """Remove the run folders of workers on this node that died (killed runs leave theirs)."""
+    for path in Path(tempfile.gettempdir()).glob(f"{WORKDIR_PREFIX}*-*"):
+        pid = path.name[len(WORKDIR_PREFIX) :].split("-", 1)[0]
+        if pid.isdigit() and not psutil.pid_exists(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+
+
 def execute_run(task: RayRunTask) -> dict[str, Any]:
     """The body of a run's Ray task: train in a private temporary folder, return the files.
 
-    The folder is removed whatever happens; on this worker nothing of the run stays behind.
+    The folder is removed whatever happens; on this worker nothing of the run stays behind (the
+    folder of a killed worker is removed by the next run on that node).
     """
     import ray
 
-    workdir = Path(tempfile.mkdtemp(prefix="der-ray-run-"))
+    _remove_orphans()
+    workdir = Path(tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-"))
     where = {"pid": os.getpid(), "host": socket.gethostname(), "node": ray.get_runtime_context().get_node_id(),
              "workdir": str(workdir)}  # fmt: skip
     run_dir = workdir / "run"
