@@ -8,29 +8,36 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
 import signal
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 import ray
 from ray_helpers import CARTPOLE, LOOPBACK, REPO, ray_listening_addresses, ray_test_env, small_cartpole
 
+from der_ros import cli
+from der_ros.experiments import backends, sweep
 from der_ros.experiments.backends import LocalBackend, RayBackend, RunEvent, SuiteRunError, run_specs
 from der_ros.experiments.backends.ray_cluster import loopback_ray
 from der_ros.experiments.run_compare import run_differences
 from der_ros.experiments.suite import methods_by_name, plan_runs
+from der_ros.experiments.sweep import grid_methods, parse_grid
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
 def ray_one_cpu(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """A Ray instance with one CPU: consecutive tasks run in the same worker process."""
+    """A Ray instance with one CPU: tasks submitted one after the other run in the same worker
+    process (queued tasks would not: Ray starts spare workers for a backlog and may use those)."""
     ray_test_env(monkeypatch)
     tmp = tempfile.mkdtemp(prefix="der-ray-", dir="/tmp")
     try:
@@ -50,16 +57,17 @@ def test_sumo_runs_twice_in_one_ray_worker(tmp_path: Path, ray_one_cpu: None) ->
     dqn = methods_by_name(["dqn"])
     ring = REPO / "config" / "ring.yaml"
     events: list[RunEvent] = []
-    backend = RayBackend()
-    # a run that fails after its simulation is up (the network cannot take the observation)
+    # first a run that fails after its simulation is up (the network cannot take the observation),
+    # then two that work, one at a time
     bad = plan_runs(ring, dqn, [0], tmp_path, small | {"agent.network": "cnn"}, group="bad")
     with pytest.raises(SuiteRunError, match="cnn"):
-        run_specs(bad, backend=backend, on_event=events.append)
+        run_specs(bad, backend=RayBackend(), on_event=events.append)
     good = plan_runs(ring, dqn, [0, 1], tmp_path, small, group="good")
-    summaries = run_specs(good, backend=backend, on_event=events.append)
-    assert sorted(s["steps"] for s in summaries) == [60, 60]
+    for spec in good:
+        assert [s["steps"] for s in run_specs([spec], backend=RayBackend(), on_event=events.append)] == [60]
     started = [e for e in events if e.kind == "started"]
     assert len(started) == 3 and len({e.where["pid"] for e in started}) == 1  # one worker process, three runs
+    assert started[0].spec.group == "bad"  # the failed run came first: its simulation did not stay open
     assert not [e for e in events if e.kind == "retry"]  # the run's own error is not retried
     for spec in good:
         run = Path(spec.run_dir)
@@ -84,12 +92,13 @@ def ray_two_cpus() -> Iterator[None]:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def test_tiny_sweep_gives_the_local_backends_files(tmp_path: Path, ray_two_cpus: None) -> None:
-    methods = methods_by_name(["dqn", "der0.9"])
-    small = small_cartpole(300, **{"train.checkpoint_interval": 150})
-    local = plan_runs(CARTPOLE, methods, [0, 1], tmp_path / "local", small)
-    remote = plan_runs(CARTPOLE, methods, [0, 1], tmp_path / "ray", small)
-    run_specs(local, backend=LocalBackend(2))
+def test_tiny_sweep_gives_the_local_backends_files(tmp_path: Path, ray_two_cpus: None,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    """`der sweep` with 2 methods x 2 seeds on both backends: the same run files and the same table."""
+    argv = ["sweep", str(CARTPOLE), "--grid", "replay.kind=uniform,der", "--seeds", "2", "--first-seed", "0"]
+    for k, v in small_cartpole(300, **{"train.checkpoint_interval": 150, "replay.lam": 0.9}).items():
+        argv += ["--set", f"{k}={json.dumps(v)}"]
+    assert cli.main([*argv, "--out", str(tmp_path / "local"), "--jobs", "2"]) == 0
     addresses: set[str] = set()
     events: list[RunEvent] = []
 
@@ -98,21 +107,48 @@ def test_tiny_sweep_gives_the_local_backends_files(tmp_path: Path, ray_two_cpus:
         if event.kind == "started":
             addresses.update(ray_listening_addresses())
 
-    run_specs(remote, backend=RayBackend(), on_event=watch)
+    with _watching(watch):
+        assert cli.main([*argv, "--out", str(tmp_path / "ray"), "--backend", "ray"]) == 0
+    capsys.readouterr()
     assert addresses and addresses <= LOOPBACK, addresses  # Ray's servers listen on loopback only
-    for a, b in zip(local, remote):
-        assert run_differences(a.run_dir, tmp_path / "local", b.run_dir, tmp_path / "ray") == []
-        names = sorted(p.name for p in Path(b.run_dir).iterdir())
-        assert names == sorted(p.name for p in Path(a.run_dir).iterdir())
+    local_runs = sorted((tmp_path / "local").glob("*/seed*"))
+    assert len(local_runs) == 4
+    for a in local_runs:
+        b = tmp_path / "ray" / a.relative_to(tmp_path / "local")
+        assert run_differences(a, tmp_path / "local", b, tmp_path / "ray") == []
+        assert sorted(p.name for p in b.iterdir()) == sorted(p.name for p in a.iterdir())
     # the comparison is not vacuous: two seeds differ
-    assert run_differences(remote[0].run_dir, tmp_path, remote[1].run_dir, tmp_path)
+    assert run_differences(local_runs[0], tmp_path, local_runs[1], tmp_path)
+    # the table written at the end is the same
+    table = {n: (tmp_path / n / "sweep.md").read_text().split("## Runs")[0] for n in ("local", "ray")}
+    assert table["local"] == table["ray"] and "`kind=der`" in table["local"]
+    points = {n: {k: {f: v for f, v in point.items() if f != "wall_time_s"}  # the one timing per run
+                  for k, point in json.loads((tmp_path / n / "sweep.json").read_text())["points"].items()}
+              for n in ("local", "ray")}  # fmt: skip
+    assert points["local"] == points["ray"] and len(points["ray"]["kind=der"]["eval_return"]) == 2
     # files came from the workers' own folders, which are gone
     workdirs = {e.where["workdir"] for e in events if e.kind == "finished"}
     assert len(workdirs) == 4 and not any(Path(w).exists() for w in workdirs)
     assert all(not w.startswith(str(tmp_path)) for w in workdirs)
     # a rerun skips the finished runs: no event, no task
     again: list[RunEvent] = []
-    assert run_specs(remote, backend=RayBackend(), on_event=again.append) == [] and again == []
+    specs = plan_runs(CARTPOLE, grid_methods(parse_grid(["replay.kind=uniform,der"])), [0, 1], tmp_path / "ray",
+                      small_cartpole(300, **{"train.checkpoint_interval": 150, "replay.lam": 0.9}))  # fmt: skip
+    assert run_specs(specs, backend=RayBackend(), on_event=again.append) == [] and again == []
+
+
+@contextmanager
+def _watching(sink: Callable[[RunEvent], None]) -> Iterator[None]:
+    """Route the events of runs started through the CLI to ``sink`` (the CLI takes no hook)."""
+    original = backends.run_specs
+
+    def with_hook(specs: Any, jobs: Any = None, backend: Any = None, on_event: Any = None) -> Any:
+        return original(specs, jobs, backend, on_event=sink)
+
+    with pytest.MonkeyPatch.context() as mp:
+        for module in (backends, sweep):
+            mp.setattr(module, "run_specs", with_hook)
+        yield
 
 
 def test_killed_worker_is_retried_from_its_checkpoint(tmp_path: Path, ray_two_cpus: None) -> None:

@@ -279,7 +279,8 @@ class _Driver:
 
     def submit(self, key: str) -> None:
         spec = self.specs[key]
-        resume = collect_files(spec.run_dir, self.backend.artifacts, RESUME_FILES)
+        # whatever --artifacts says comes back, a checkpoint on this machine is always resumed from
+        resume = collect_files(spec.run_dir, "all" if self.backend.artifacts == "all" else "checkpoint", RESUME_FILES)
         if CHECKPOINT_NAME not in resume:
             resume = {}  # nothing to resume from: the run starts over, as locally
         task = RayRunTask(spec, self.configs[key], resume, self.backend.artifacts, self.attempt[key], self.mailbox)
