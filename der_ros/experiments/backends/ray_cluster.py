@@ -162,6 +162,8 @@ def execute_run(task: RayRunTask) -> dict[str, Any]:
 
         cfg = experiment_from_dict(task.config, source=f"{task.spec.config_path} (resolved by the driver)")
         summary = run_one(task.spec, run_dir=run_dir, cfg=cfg, on_checkpoint=ship_checkpoint)
+        if summary.get("interrupted"):  # cancelled (Ctrl-C on the driver): its checkpoint goes by mail
+            ship_checkpoint(run_dir / CHECKPOINT_NAME, int(summary.get("steps", 0)))
         files = collect_files(run_dir, task.artifacts)
         if SUMMARY_NAME in files:
             files[SUMMARY_NAME] = relocate_summary(files[SUMMARY_NAME], task.spec.run_dir)
@@ -276,6 +278,9 @@ class _Driver:
         self.remote = ray.remote(execute_run)
         self.refs: dict[Any, str] = {}
         self.outcomes: list[RunEvent] = []
+        #: runs whose current attempt has started; runs that sent a checkpoint (since Ctrl-C)
+        self.running: set[str] = set()
+        self.saved: set[str] = set()
 
     def submit(self, key: str) -> None:
         spec = self.specs[key]
@@ -303,12 +308,16 @@ class _Driver:
                 if attempt != self.attempt.get(key):
                     continue  # from an attempt already given up
                 spec = self.specs[key]
+                if kind == "started":
+                    self.running.add(key)
                 if kind == "checkpoint":
                     write_files(spec.run_dir, files or {})
                     self.checkpoint_step[key] = step
+                    self.saved.add(key)
                 self.emit(RunEvent(kind, spec, attempt, where=dict(where), step=step))
 
     def finish(self, key: str, result: dict[str, Any]) -> None:
+        self.running.discard(key)
         spec = self.specs[key]
         write_files(spec.run_dir, result["files"])
         if self.backend.artifacts == "small":
@@ -320,6 +329,7 @@ class _Driver:
     def lost(self, key: str, exc: BaseException) -> None:
         """The attempt's worker or node is gone: retry from the last checkpoint, or give up."""
         self.drain()  # a checkpoint sent just before the death is used
+        self.running.discard(key)
         spec = self.specs[key]
         attempts = self.attempt[key] + 1
         reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
@@ -333,6 +343,7 @@ class _Driver:
         self.fail(key, error)
 
     def fail(self, key: str, error: BaseException) -> None:
+        self.running.discard(key)
         event = RunEvent("failed", self.specs[key], self.attempt[key], error=error)
         self.outcomes.append(event)
         self.emit(event)
@@ -372,21 +383,30 @@ class _Driver:
         return self.outcomes
 
     def interrupt(self) -> None:
-        """Ctrl-C: give runs in progress a moment to return (those that saw the SIGINT stopped
-        after a checkpoint), keep what arrives, cancel the rest; a rerun resumes each run from its
-        last checkpoint on this machine."""
+        """Ctrl-C: ask the runs in progress to stop (Ray's cancel raises the SIGINT the runner
+        handles: it stops after the current step and writes a checkpoint, which the task mails to
+        this machine), keep what arrives for a moment, then cancel by force; a rerun resumes each
+        run from its last checkpoint here."""
         ray = self.ray
-        log.warning("interrupted: collecting runs in progress for up to %.0f s; rerun the same command to continue",
-                    INTERRUPT_GRACE_S)  # fmt: skip
+        log.warning("interrupted: runs in progress save a checkpoint (up to %.0f s); rerun the same command to "
+                    "continue", INTERRUPT_GRACE_S)  # fmt: skip
+        self.drain()  # what was sent before Ctrl-C
+        waiting = set(self.running) if self.backend.artifacts != "small" else set()
+        self.saved.clear()
+        for ref in self.refs:
+            ray.cancel(ref, force=False)
         deadline = time.monotonic() + INTERRUPT_GRACE_S
         try:
-            while self.refs and time.monotonic() < deadline:
-                ready, _ = ray.wait(list(self.refs), num_returns=1, timeout=POLL_S)
+            while (self.refs or waiting - self.saved) and time.monotonic() < deadline:
+                ready, _ = ray.wait(list(self.refs), num_returns=1, timeout=POLL_S) if self.refs else ([], [])
+                if not self.refs:
+                    time.sleep(POLL_S)
                 self.drain()
                 for ref in ready:
                     key = self.refs.pop(ref)
                     try:
                         self.finish(key, ray.get(ref))
+                        waiting.discard(key)
                     except ray.exceptions.RayError:
                         pass
         except KeyboardInterrupt:
