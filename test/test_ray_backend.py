@@ -13,7 +13,10 @@ import logging
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -201,3 +204,48 @@ def test_a_run_lost_more_often_than_allowed_is_reported(tmp_path: Path, ray_two_
     assert "1 run(s) failed" in text and "dqn/seed0" in text
     assert "WorkerCrashedError" in text and "worker lost 2 times; --max-retries 1" in text
     assert not (tmp_path / "dqn" / "seed0" / "summary.json").exists()
+
+
+def test_ctrl_c_on_the_driver_saves_checkpoints_and_a_rerun_finishes(tmp_path: Path) -> None:
+    """Ctrl-C on `der sweep --backend ray` (SIGINT to its process group, as a terminal sends it):
+    the runs in progress stop after a step, their checkpoints reach --out, the command exits 130;
+    the same command again resumes them and finishes."""
+    out, log = tmp_path / "out", tmp_path / "driver.log"
+    cmd = [sys.executable, "-m", "der_ros.cli", "sweep", str(CARTPOLE), "--grid", "replay.kind=uniform,der",
+           "--seeds", "1", "--first-seed", "0", "--out", str(out), "--backend", "ray", "--jobs", "2"]  # fmt: skip
+    for k, v in small_cartpole(10_000, **{"train.eval_interval": 0, "train.final_eval_episodes": 2}).items():
+        cmd += ["--set", f"{k}={json.dumps(v)}"]
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    with open(log, "w") as fh:
+        proc = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+        try:
+            deadline = time.monotonic() + 180
+            while log.read_text().count("] start kind=") < 2:
+                assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+                time.sleep(0.5)
+            time.sleep(3)  # both runs are in their training loops
+            os.killpg(proc.pid, signal.SIGINT)
+            assert proc.wait(timeout=120) == 130, log.read_text()[-3000:]
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    text = log.read_text()
+    assert "runs in progress save a checkpoint" in text and "Traceback" not in text
+    runs = sorted(out.glob("kind=*/seed0"))
+    assert len(runs) == 2
+    stopped = {}
+    for run in runs:
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["interrupted"] and 0 < summary["steps"] < 10_000, summary
+        assert (run / "checkpoint.pt").is_file()
+        stopped[run.name] = summary["steps"]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for run in runs:
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["steps"] == 10_000 and not summary["interrupted"]
+        steps = [int(line.split(",")[1]) for line in (run / "episodes.csv").read_text().splitlines()[1:]]
+        assert steps == sorted(steps) and steps[-1] > stopped[run.name]  # continued, not restarted
+    assert (out / "sweep.md").is_file()
