@@ -3,6 +3,7 @@ MP4, and clear errors for a bag without markers or a missing encoder."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,7 @@ def test_a_bag_without_markers_is_a_clear_error(tmp_path: Path, capsys: pytest.C
 
 def test_mp4_when_an_encoder_is_installed_else_an_error_that_suggests_gif(tmp_path: Path,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    import imageio_ffmpeg
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="a requirement; the missing-package case is below")
 
     bag = tmp_path / "bag"
     steps = record(bag, "ring", 4)
@@ -117,6 +118,23 @@ def test_mp4_when_an_encoder_is_installed_else_an_error_that_suggests_gif(tmp_pa
     assert not (tmp_path / "again.mp4").exists()
     with pytest.raises(animation.AnimationError, match="unknown animation format '.avi'"):
         render_bag(bag, tmp_path / "episode.avi")
+
+
+def test_mp4_without_the_encoder_package_is_one_line_that_suggests_gif(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Without imageio-ffmpeg (``import`` fails), ``--to x.mp4`` stops before reading the bag, names the
+    package and suggests a GIF; the same bag renders to GIF."""
+    bag = tmp_path / "bag"
+    steps = record(bag, "ring", 2)
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import imageio_ffmpeg -> ImportError
+    with pytest.raises(animation.EncoderUnavailable, match=r"imageio-ffmpeg .*not installed.*--to out\.gif"):
+        render_bag(bag, tmp_path / "x.mp4")
+    assert cli.main(["replay", "render", str(bag), "--to", str(tmp_path / "x.mp4")]) == 1
+    err = capsys.readouterr().err
+    assert "cannot write MP4" in err and "--to out.gif" in err and "Traceback" not in err
+    assert not (tmp_path / "x.mp4").exists()
+    assert render_bag(bag, tmp_path / "x.gif").frames == steps + 1
 
 
 def test_gif_palette_keeps_the_drawn_colours_exact(tmp_path: Path) -> None:
