@@ -194,7 +194,8 @@ def test_scene_markers_are_sumos_vehicles_and_the_road_is_latched(ros_graph):  #
     from sumo_bridge.lane_change_env import LaneChangeEnv
 
     vehicles = ros_graph.probe.collect(ct.SCENE_VEHICLES, MarkerArray)
-    a = FakeAgent(ros_graph, **{"scenario.max_episode_steps": 3})
+    # a rebuild at every reset (not the warm re-placing of the same vehicles), so that some vehicles leave
+    a = FakeAgent(ros_graph, **{"scenario.max_episode_steps": 3, "scenario.ring_rebuild_every": 1})
     actions = [0, 0, 0]  # episode 0: states 0..3 (3 ends it), episode 1 starts at state 4
     for k, action in enumerate(actions):
         a.state(k)
@@ -207,7 +208,7 @@ def test_scene_markers_are_sumos_vehicles_and_the_road_is_latched(ros_graph):  #
         assert len(found) == 1
         return found[0]
 
-    env = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=3))  # the bridge's scenario (seed 0)
+    env = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=3, ring_rebuild_every=1))  # the bridge's (seed 0)
     try:
         env.enable_scene()
         env.reset()

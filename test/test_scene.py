@@ -63,6 +63,11 @@ def test_ring_markers_are_libsumos_vehicles_with_stable_ids_and_deletes(ring: La
     ids = check_against_libsumo(ring, decoded(ring.scene()))
     ring.step(1)  # a lane change: the slots change, the ids do not
     assert check_against_libsumo(ring, decoded(ring.scene())) == ids
+    moved = {vid: ring.api.vehicle.getPosition(vid) for vid in ids}
+    ring.reset()  # unseeded: the same vehicles re-placed (sumo_bridge.warm_state), the markers follow them
+    update = decoded(ring.scene())
+    assert not update.deleted and check_against_libsumo(ring, update) == ids
+    assert any(math.dist(moved[vid], ring.api.vehicle.getPosition(vid)) > 1.0 for vid in ids)
     before = set(ring.api.vehicle.getIDList())
     ring.reset(seed=11)  # another placement: some ids vanish, others come
     after = set(ring.api.vehicle.getIDList())
