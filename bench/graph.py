@@ -11,7 +11,7 @@ Runs, on the ring scenario with the agent/replay settings of ``config/graph.para
 3. ``graph_eval``: the same graph with the agent in evaluation mode (acting only, no learning),
    which isolates the transport + executor round trip from the gradient step.
 4. ``graph_no_markers``: the training graph with the bridge's scene markers off (``markers:=false``;
-   on by default: every vehicle on ``scene/vehicles`` each step), run right before the training
+   on by default: every vehicle on ``scene/vehicles`` each step), run next to the training
    graph, so the two differ only in the markers: what the scene costs the graph. First of all, in
    one process, the marker work itself: env steps with and without the scene's subscriptions, and
    ``env.scene()`` + encoding per step (``scene_*``).
@@ -28,8 +28,9 @@ roundtrip_p50_ms, roundtrip_p99_ms (training graph, markers on), the same for th
 markers (no_markers_*), eval_roundtrip_p50_ms/p99_ms, the eval graph's steps/s, episode counts.
 Targets: graph >= 60% of in-process (the README's reference run: 0.85), round-trip p50 <= 1 ms.
 
-``--pairs N`` alternates the graphs without and with markers N times and reports the median run
-of each (one pair on a loaded machine can be off by 30% either way).
+``--pairs N`` runs the graphs without and with markers N times each, in ABBA order (off-on, on-off,
+...), and reports the median run of each and the cost within each pair (``markers_cost_pairs``:
+1 - on/off; one pair on a loaded machine can be off by 30% either way).
 
     .venv/bin/python bench/graph.py [--steps 3000] [--quick] [--record] [--pairs N]
 """
@@ -239,10 +240,11 @@ def main() -> int:
     for pair in range(max(1, args.pairs)):
         pair_dir = workdir / f"pair{pair}"
         pair_dir.mkdir()
-        plains.append(run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=False, record=args.record))
-        print(f"graph (training, markers off): {json.dumps(plains[-1])}", file=sys.stderr)
-        graphs.append(run_graph(steps, overrides, evaluate=False, workdir=pair_dir, record=args.record))
-        print(f"graph (training, markers on): {json.dumps(graphs[-1])}", file=sys.stderr)
+        # off-on, on-off, off-on, ...: neither variant always runs first (ABBA order)
+        for markers in (False, True) if pair % 2 == 0 else (True, False):
+            run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=markers, record=args.record)
+            (graphs if markers else plains).append(run)
+            print(f"graph (training, markers {'on' if markers else 'off'}): {json.dumps(run)}", file=sys.stderr)
     plain, graph = _median_run(plains), _median_run(graphs)
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
     print(f"graph (evaluation mode): {json.dumps(graph_eval)}", file=sys.stderr)
@@ -263,6 +265,7 @@ def main() -> int:
         "no_markers_graph_ratio": round(plain["steps_per_s"] / inproc, 3),
         "no_markers_roundtrip_p50_ms": round(plain["roundtrip_p50_ms"], 3),
         "markers_cost": round(1.0 - graph["steps_per_s"] / plain["steps_per_s"], 3),
+        "markers_cost_pairs": [round(1.0 - on["steps_per_s"] / off["steps_per_s"], 3) for off, on in zip(plains, graphs)],
         "bridge_busy_fraction_no_markers": round(plain["busy_fraction"], 3),
         **{f"scene_{k}": v for k, v in scene.items()},
         "graph_episodes": int(graph["episodes_started"]),
