@@ -16,7 +16,7 @@ from der_ros.bag import animation
 from der_ros.bag.episode_recording import record_episode
 from der_ros.bag.episodes import EpisodeSummary
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.bag.render import PALETTE, ROLE_RGB, RenderOptions, frame_view, render_bag
+from der_ros.bag.render import PALETTE, ROLE_RGB, RenderOptions, caption_lines, frame_view, render_bag
 from der_ros.bag.scene_frames import read_scene, select_episodes
 from der_ros.contract import ACTION_NAMES
 from sumo_bridge.lane_change_env import ACTION_MEANINGS, LaneChangeEnv
@@ -26,11 +26,21 @@ from sumo_bridge.scenario import ScenarioConfig
 ACTIONS = [0, 0, 0, 1] + [0] * 50
 
 
-def record(path: Path, network: str, steps: int) -> int:
-    """A short episode of ``network`` recorded as der graph records its greedy episode; its steps."""
+def record(path: Path, network: str, steps: int, rewards: list[float] | None = None) -> int:
+    """A short episode of ``network`` recorded as der graph records its greedy episode; its steps.
+    ``rewards``: filled with the env's reward of every step, as the env returned it."""
     cfg = (ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban)(max_episode_steps=steps)
     env = LaneChangeEnv(cfg)
     actions = iter(ACTIONS)
+    if rewards is not None:
+        env_step = env.step
+
+        def step(action: int):  # noqa: ANN202 - the env's own step, its reward noted
+            out = env_step(action)
+            rewards.append(float(out[1]))
+            return out
+
+        env.step = step  # type: ignore[method-assign]
     try:
         return record_episode(env, lambda _obs: next(actions), path, seed=7).steps
     finally:
@@ -87,6 +97,27 @@ def test_episode_choice_and_the_caption_numbers(tmp_path: Path) -> None:
         select_episodes(summaries, episode=3)
     with pytest.raises(ValueError, match="no episode in 20-30"):
         select_episodes(summaries, span=(20, 30))
+
+
+def test_the_caption_tells_step_action_reward_return_and_outcome(tmp_path: Path) -> None:
+    """Each frame's caption, read back from the bag: the action taken from that state (the env's name
+    for it), the reward the env returned for arriving there, the running return, and the outcome only
+    on the last frame, where it is the one the bag's episode summary holds."""
+    bag, rewards = tmp_path / "bag", []
+    steps = record(bag, "ring", 6, rewards)
+    assert len(rewards) == steps >= 2
+    recording = read_scene(BagReader(bag))
+    (ep,) = recording.episodes
+    outcome = ep.summary.outcome
+    assert outcome in ("time_limit", "success", "collision")
+    for k, frame in enumerate(ep.frames):
+        line1, line2 = caption_lines("ring", ep, frame, recording.step_seconds)
+        assert line1 == f"ring   episode 0   step {k}/{steps}   t = {0.5 * k:.1f} s"
+        action = ACTION_MEANINGS[ACTIONS[k]] if k < steps else "-"
+        reward = "-" if k == 0 else f"{rewards[k - 1]:+.2f}"
+        ret = sum(rewards[:k])
+        assert line2 == (f"action {action}   reward {reward}   return {ret:+.2f}   "
+                         f"outcome {outcome if k == steps else '...'}"), k  # fmt: skip
 
 
 def test_a_bag_without_markers_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -31,7 +31,7 @@ from der_ros.bag.scene_frames import EpisodeFrames, Frame, SceneRecording, read_
 from der_ros.contract import ACTION_NAMES, EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
 
 __all__ = ["RenderOptions", "View", "RenderResult", "network_view", "follow_view", "frame_view", "draw_frame",
-           "render_recording", "render_bag", "Caption", "PALETTE"]  # fmt: skip
+           "render_recording", "render_bag", "Caption", "caption_lines", "PALETTE"]  # fmt: skip
 
 RGB = tuple[int, int, int]
 
@@ -197,18 +197,22 @@ def draw_frame(lanes: list[LaneLine], frame: Frame, view: View, opts: RenderOpti
     return img
 
 
-def _draw_caption(draw: ImageDraw.ImageDraw, frame: Frame, opts: RenderOptions, cap: Caption) -> None:
-    draw.rectangle((0, 0, opts.width, opts.caption_height - 1), fill=BAND)
-    ep = cap.episode
-    last = frame.step == len(ep.frames) - 1
+def caption_lines(title: str, ep: EpisodeFrames, frame: Frame, step_seconds: float) -> tuple[str, str]:
+    """The caption of ``frame``: where (episode, step of how many, simulated time) and what (the action
+    taken from here, the reward of arriving here, the return so far; the outcome once it is known, at
+    the episode's last frame)."""
     n_steps = len(ep.frames) - 1
-    line1 = (f"{cap.title}   episode {ep.label}   step {frame.step}/{n_steps}   "
-             f"t = {frame.step * cap.step_seconds:.1f} s")  # fmt: skip
+    line1 = f"{title}   episode {ep.label}   step {frame.step}/{n_steps}   t = {frame.step * step_seconds:.1f} s"
     action = "-" if frame.action is None else ACTION_NAMES[frame.action] if 0 <= frame.action < len(
         ACTION_NAMES) else str(frame.action)  # fmt: skip
     reward = "-" if frame.reward is None else f"{frame.reward:+.2f}"
-    outcome = ep.summary.outcome if last else "..."
-    line2 = f"action {action}   reward {reward}   return {frame.ret:+.2f}   outcome {outcome}"
+    outcome = ep.summary.outcome if frame.step == n_steps else "..."
+    return line1, f"action {action}   reward {reward}   return {frame.ret:+.2f}   outcome {outcome}"
+
+
+def _draw_caption(draw: ImageDraw.ImageDraw, frame: Frame, opts: RenderOptions, cap: Caption) -> None:
+    draw.rectangle((0, 0, opts.width, opts.caption_height - 1), fill=BAND)
+    line1, line2 = caption_lines(cap.title, cap.episode, frame, cap.step_seconds)
     draw.text((8, 4), line1, fill=TEXT, font=cap.font)
     draw.text((8, 22), line2, fill=TEXT, font=cap.font)
     x = 8
