@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import os
 import shlex
+import signal
 from collections.abc import Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -157,8 +159,6 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
 def _worker_init() -> None:
     """Idle workers ignore Ctrl-C (a running training installs its own handler, which stops
     after the current step and writes a checkpoint); one torch thread per worker."""
-    import signal
-
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -238,6 +238,13 @@ def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[st
                     " (interrupted)" if summary.get("interrupted") else "",
                 )
     except KeyboardInterrupt:
+        # A terminal's Ctrl-C reaches the workers too, but a SIGINT/SIGTERM sent to this process
+        # alone (a background job) would leave them training to the end: pass it on.
+        for child in multiprocessing.active_children():
+            try:
+                os.kill(child.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
         log.warning("interrupted: workers write checkpoints; rerun the same command to continue")
         raise
     finally:
