@@ -23,6 +23,8 @@ import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+import numpy as np
+
 from der_ros.configuration import (
     ConfigError,
     FieldSpec,
@@ -33,6 +35,9 @@ from der_ros.configuration import (
     unflatten_names,
 )
 from der_ros.nodes.node_configs import NODE_SECTIONS, parameter_sections
+from der_ros.replay.factory import check_replay_memory
+from der_ros.replay.storage import ReplayMemoryError
+from sumo_bridge.observation import empty_points, encode_observation
 
 __all__ = [
     "ROS_OWN_PARAMETERS",
@@ -136,13 +141,31 @@ def check_node_parameters(node: str, values: Mapping[str, Any], origins: Mapping
         checked = check_parameter(node, name, value, origin_of(name), specs)
         if checked is not None:
             typed[name] = checked
+    configs: dict[str, Any] = {}
     for prefix, default in parameter_sections(node).items():
         mine = {n: v for n, v in values.items() if n in owned and owned[n][1] == prefix and v is not None}
         try:
-            from_dict(type(default), _merged(to_dict(default), unflatten_names(mine, prefix)), source="")
+            configs[prefix] = from_dict(type(default), _merged(to_dict(default), unflatten_names(mine, prefix)),
+                                        source="")
         except ConfigError as exc:
             raise section_error(node, prefix, exc, origin_of, mine) from None
+    if node == "agent_node":
+        _check_replay_fits(configs, origin_of("replay.capacity"))
     return typed
+
+
+def _check_replay_fits(configs: Mapping[str, Any], origin: str) -> None:
+    """The agent's replay must fit in memory (``replay.capacity: 1e12`` is a bad value, not a crash
+    of the agent after the recorder started)."""
+    agent, replay = configs["agent"], configs["replay"]
+    if agent.batch_size > replay.capacity:
+        raise parameter_error(origin, "agent_node", "agent.batch_size", agent.batch_size,
+                              f"expected <= replay.capacity ({replay.capacity})")
+    obs_shape = encode_observation(empty_points(), configs["observation"]).shape
+    try:
+        check_replay_memory(replay, obs_shape, np.float32, agent.batch_size)
+    except ReplayMemoryError as exc:
+        raise parameter_error(origin, "agent_node", "replay.capacity", replay.capacity, str(exc)) from None
 
 
 def _merged(base: dict[str, Any], new: Mapping[str, Any]) -> dict[str, Any]:
