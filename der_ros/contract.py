@@ -37,7 +37,7 @@ __all__ = [
     # status names, events, prefixes
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
-    "APPLIED_ACTION_PREFIX", "POINTFIELD_FLOAT64",
+    "APPLIED_ACTION_PREFIX", "POINTFIELD_FLOAT64", "FLOAT32_MAX",
     # QoS and the topic table
     "QosSpec", "TopicSpec", "TOPICS", "RELIABLE_VOLATILE", "SENSOR_DATA", "topic_spec", "topic_by_name",
     "default_record_topics", "topics_markdown", "parse_qos_profiles", "merged_qos", "qos_text",
@@ -77,6 +77,8 @@ EPISODE_EVENTS = (EPISODE_START, *EPISODE_ENDS)
 APPLIED_ACTION_PREFIX = "applied_action="
 #: ``sensor_msgs/PointField.FLOAT64``: the only datatype of the ``state`` cloud's fields
 POINTFIELD_FLOAT64 = 8
+#: observations and rewards are stored as float32: larger values (and NaN/inf) are malformed input
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 _NS = 1_000_000_000
 
 # -- QoS -----------------------------------------------------------------------------------------
@@ -443,8 +445,8 @@ def parse_applied_action(msg: Any) -> int | None:
 def parse_reward(msg: Any) -> Reward:
     """``reward`` message -> :class:`Reward`; ValueError naming the field if malformed."""
     v = msg.vector
-    if not math.isfinite(v.x):
-        raise ValueError(f"reward x = {v.x!r}, expected a finite number")
+    if not math.isfinite(v.x) or abs(v.x) > FLOAT32_MAX:
+        raise ValueError(f"reward x = {v.x!r}, expected a finite number within float32 range (it is stored as float32)")
     for name, flag in (("y (terminated)", v.y), ("z (truncated)", v.z)):
         if flag not in (0.0, 1.0):
             raise ValueError(f"reward {name} = {flag!r}, expected 0 or 1")
@@ -472,9 +474,10 @@ def cloud_to_points(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray
     """``state`` PointCloud2 -> ``(width * height, n_fields)`` float64 array, bit-exact.
 
     Every field must be FLOAT64, count 1, packed in order (the bridge's layout); ``fields``
-    (e.g. ``observation.POINT_FIELDS``) also pins the names. Anything else raises ValueError
-    naming the field: a silently re-typed observation would break the promise that the agent,
-    the environment and the export see bit-identical observations.
+    (e.g. ``observation.POINT_FIELDS``) also pins the names; every value must be finite and
+    within float32's range (the simulator never sends others; a NaN would poison the replay).
+    Anything else raises ValueError naming the field: a silently re-typed observation would break
+    the promise that the agent, the environment and the export see bit-identical observations.
     """
     names = point_field_names(msg)
     if fields is not None and names != tuple(fields):
@@ -495,7 +498,14 @@ def cloud_to_points(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray
         )
     dtype = np.dtype(">f8" if msg.is_bigendian else "<f8")
     # rclpy gives array.array/bytes, rosbags a uint8 ndarray: all expose the buffer protocol
-    return np.frombuffer(data, dtype=dtype).astype(np.float64).reshape(n, len(names))
+    points = np.frombuffer(data, dtype=dtype).astype(np.float64).reshape(n, len(names))
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(points) | (np.abs(points) > FLOAT32_MAX)
+    if bad.any():  # a NaN/inf point would reach the observation (and the replay) of every consumer
+        row, col = (int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"state point {row} field {names[col]!r} = {points[row, col]!r}, expected a finite number "
+                         "within float32 range")
+    return points
 
 
 def odometry_pose(msg: Any) -> tuple[int, float, float, float, float]:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from der_ros.agent.config import DQNConfig
+from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.networks import flatten_parameters, make_q_network
 from der_ros.agent.optim import FlatAdam
 from der_ros.agent.schedules import LinearSchedule
@@ -39,7 +41,7 @@ from der_ros.configuration import from_dict, to_dict
 from der_ros.replay.config import ReplayConfig
 from der_ros.replay.factory import make_replay
 
-__all__ = ["DQNAgent", "resolve_device", "read_checkpoint", "CHECKPOINT_VERSION"]
+__all__ = ["DQNAgent", "LearnerDiverged", "resolve_device", "read_checkpoint", "diverged_path", "CHECKPOINT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -232,13 +234,20 @@ class DQNAgent:
         else:
             per_sample = F.smooth_l1_loss(q, y, reduction="none")
         loss = (weights * per_sample).mean()
+        loss_value = float(loss.item())
+        if not math.isfinite(loss_value):
+            raise self._diverged(f"TD loss = {loss_value}")
 
         self._flat_grad.zero_()
         loss.backward()
         if self.cfg.max_grad_norm > 0.0:
             # global norm over all parameters = norm of the one flat gradient buffer
             norm = torch.linalg.vector_norm(self._flat_grad)
+            if not math.isfinite(float(norm)):
+                raise self._diverged(f"gradient norm = {float(norm)}")
             self._flat_grad.mul_(torch.clamp(self.cfg.max_grad_norm / (norm + 1e-6), max=1.0))
+        elif not bool(torch.isfinite(self._flat_grad).all()):
+            raise self._diverged("a non-finite gradient")
         self.optimizer.step()
         self.grad_steps += 1
         if self.grad_steps % self.cfg.target_update_interval == 0:
@@ -248,7 +257,17 @@ class DQNAgent:
         self.replay.update_priorities(batch.indices, td_np)
         n = td_np.shape[0]
         q_sum = float(np.add.reduce(q.detach().cpu().numpy()))  # (np.mean costs ~4x more per call)
-        return float(loss.item()), q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
+        return loss_value, q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
+
+    def _diverged(self, what: str) -> LearnerDiverged:
+        return LearnerDiverged(
+            f"the learner diverged at gradient step {self.grad_steps + 1} (env step {self.steps}): {what}; the step "
+            "was not taken, the weights are the last finite ones"
+        )
+
+    def parameters_finite(self) -> bool:
+        """True when every weight of the online and target networks is finite (one flat buffer each)."""
+        return bool(torch.isfinite(self._flat).all()) and bool(torch.isfinite(self._target_flat).all())
 
     @torch.no_grad()
     def update_target(self) -> None:
