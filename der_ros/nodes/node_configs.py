@@ -44,6 +44,10 @@ class BridgeNodeConfig:
         "agent + recorder, so the bag starts with the first state)", low=1)
     diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
     map_frame: str = param("map", "frame_id of ego/odom")
+    command_queue_depth: int = param(
+        1000, "KEEP_LAST depth of the lane_change_cmd subscription; each command callback also takes every command "
+        "already queued (up to this many), so a flood of stray commands is judged and rejected before it can push "
+        "the agent's answer out of the queue", low=1, high=100_000)
 
 
 @dataclass
