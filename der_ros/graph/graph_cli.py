@@ -26,7 +26,7 @@ import yaml
 
 from der_ros.graph.evaluation import GraphEvaluator
 from der_ros.graph.progress import Progress
-from der_ros.graph.report import bridge_summary, report, snapshot_from_bag
+from der_ros.graph.report import bridge_summary, report, snapshot_from_bag, unanswered_run
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
 from der_ros.interrupts import interrupts_raise
 from der_ros.nodes.params import build_graph_params, load_params_file
@@ -172,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.monotonic() - t0
     snap = snapshot_from_bag(run_dir / "bag", snap)
     bridge = bridge_summary(run_dir / "logs")
+    outcome = unanswered_run(outcome, bridge)  # every node exited 0 but the agent answered nothing: a failure
     if snap is not None and "sim_steps" in bridge:
         snap.steps = int(bridge["sim_steps"])  # the bridge's own count of simulated decision steps
     final = None

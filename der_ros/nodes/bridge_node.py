@@ -78,6 +78,8 @@ from sumo_bridge.observation import field_index
 __all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
 _NS = 1_000_000_000
+#: consecutive timeouts at the start, no command accepted yet, after which the bridge names who publishes and listens
+_SILENT_START = 3
 
 
 class LatencyStats:
@@ -306,6 +308,14 @@ class BridgeNode(Node):
             f"no command for step stamped {key} within {self.cfg.command_timeout}s: default action {action}",
             throttle_duration_sec=1.0,
         )
+        if self.gate.counters["timeouts"] == _SILENT_START and not self.gate.counters["accepted"]:
+            # the agent has answered nothing yet: name who publishes commands and who listens (diagnosis of a
+            # deaf or absent agent; der graph fails a run the agent never answered)
+            pubs = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in self.get_publishers_info_by_topic(COMMAND)]
+            subs = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in self.get_subscriptions_info_by_topic(STATE)]
+            self.get_logger().warning(
+                f"no answer to any of the first {_SILENT_START} states: {COMMAND} publishers {pubs}, {STATE} "
+                f"subscribers {subs}, command counters {self.gate.stats()}")
         self._step(action)
 
     def _on_tick(self) -> None:
