@@ -1,7 +1,8 @@
 """der_ros: Double Experience Replay (DER) DQN agents for SUMO lane changing, with ROS 2 nodes.
 
-The core (``der_ros.replay``, ``der_ros.agent``, ``der_ros.train``, ``der_ros.bag``) never
-imports ROS; node adapters live in ``*_node.py`` modules.
+The cores (``replay``, ``agent``, ``train``, ``experiments``, ``bag`` but ``bag.play``, ``sumo_bridge``) never
+import ROS; the graph contract every part speaks is ``der_ros.contract``; node adapters live in
+``der_ros.nodes`` (``*_node.py``). Layers and rules: ``docs/architecture.md``.
 """
 
 __version__ = "0.1.0"

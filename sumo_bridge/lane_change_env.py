@@ -62,12 +62,48 @@ was paid so far.
 
 Resets and determinism
 ----------------------
-``reset(seed=s)`` seeds the placement/traffic RNG and SUMO's ``--seed`` (drawn from it), so the
-same seed gives the same trajectory. Ring resets reload the simulation in place with
-``load`` (a few ms, no new process). Urban resets keep the background traffic running and
-only replace the ego after ``urban_ego_gap_seconds`` (a full ``load`` + ``urban_warmup_seconds``
-happens on ``reset(seed=...)`` and every ``urban_reload_every`` episodes), because filling a 1 km
-bridge takes ~100 simulated seconds. The urban ego gets a fresh id (``env.ego_id``) each episode.
+``reset(seed=s)`` seeds the placement/traffic RNG and SUMO's ``--seed`` (drawn from it) and always
+rebuilds the traffic after a ``load`` (which also restarts SUMO's own RNG, the one behind the
+drivers' imperfection sigma = 0.5), so it is a pure function of ``s``: the same seed gives the
+same trajectory whatever the env did before. Resets without a seed go on with the env's RNG, so a
+whole training stream is fixed by its first seed (and the actions).
+
+Ring. A full build -- ``load`` in place (no new process), 22-32 vehicles placed at standstill at
+seeded positions, ``warmup_seconds`` (5 s = 50 SUMO steps) of traffic -- costs 8-14 ms, which was
+~40% of a training run (issue 11). So an unseeded reset builds only every ``ring_rebuild_every``
+(4) episodes; in between it *re-places* the last build's traffic (:mod:`sumo_bridge.warm_state`):
+every vehicle goes back to its lane, position, speed and keep-right urge at the end of that
+build's warm-up, the ego's lane exactly, the other lane rotated around the ring by a fresh
+uniform offset (a build draws each lane's offset independently and uniformly, so a rotation is
+as likely as the recorded one), then one SUMO step runs, as after the build's warm-up. A
+re-placement's median was 0.77-0.90 ms on the 2-core machine at load 4-8, where builds took
+20-45 ms (``bench/train_loop.py`` reports the stream's ``reset_ms_p50``). Leaving the traffic running and replacing only the ego (as on the urban
+network) would be cheaper still but changes the task: within one episode the lanes equalise
+(7-11 / 15-21 vehicles become ~14 / 14), and the ego then starts beside a sparse inner lane whose
+vehicles drive 11-12 m/s instead of 7 (KS statistics 0.3-0.7 against a build's first observations).
+
+What re-placements change, measured by ``bench/reset_variety.py`` (ring.yaml; two-sample KS
+statistics of the first observation of 500 stream episodes against 500 seeded builds, in
+brackets the same for a stream of builds only, i.e. the chance level):
+
+* target-lane slots, new in every episode: left leader gap 0.043 [0.031], speed 0.063 [0.039];
+  left follower gap 0.041 [0.042], speed 0.062 [0.055]; gap quantiles 10/50/90 % -3.7/4.3/18.3
+  and -2.9/4.9/18.4 m against -4.0/4.4/18.5 and -3.2/5.0/17.9 m for builds.
+* own lane, repeated for ``ring_rebuild_every`` episodes per build: ego speed 0.050 [0.054],
+  leader gap 0.078 [0.071], speed 0.099 [0.055], follower (present in ~20% of the starts) gap
+  0.178 [0.160], speed 0.096 [0.113]. With ``ring_rebuild_every`` = 8 the own-lane statistics
+  grow (see bench/README.md) while the target lane stays at chance level; hence 4.
+* dynamics: lane-change state SUMO keeps but does not expose carries over, so after a
+  re-placement the background vehicles change lanes ~8% less often (6.6-6.8 vs 7.2-7.3 per
+  episode) and the keep-lane return is 0.4% lower (92.9 vs 93.3); gap acceptance succeeds in
+  0.81 vs 0.80 of the episodes, without collisions either way (300 episodes each).
+
+``ring_rebuild_every = 1`` gives the earlier behaviour exactly (a build at every reset).
+
+Urban. Resets keep the background traffic running and only replace the ego after
+``urban_ego_gap_seconds`` (a full ``load`` + ``urban_warmup_seconds`` happens on ``reset(seed=...)``
+and every ``urban_reload_every`` episodes), because filling a 1 km bridge takes ~100 simulated
+seconds. The urban ego gets a fresh id (``env.ego_id``) each episode.
 
 Neighbours come from one context subscription on the ego (lanes -1/0/+1, up- and downstream)
 per step; the mean speed from per-vehicle speed subscriptions (one read per step); departures
@@ -99,6 +135,7 @@ from sumo_bridge.observation import (
 )
 from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
 from sumo_bridge.sim_backend import SumoSimulation, constants
+from sumo_bridge.warm_state import WarmState
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +190,8 @@ class LaneChangeEnv(gym.Env):
         self._closed_corridor = cfg.network == "ring"
         self._episodes_since_load = 0
         self._need_load = True
+        self._ring_edges: list[tuple[str, float, float]] = []  # (edge, arc offset, length) of the ring's normal edges
+        self._warm: WarmState | None = None  # ring: the last build's traffic, one step before its first observation
         self._ego_present = False
         self._colliding = False
         self._points = empty_points()
@@ -265,22 +304,35 @@ class LaneChangeEnv(gym.Env):
         self._episodes_since_load = 0
         self._need_load = False
 
+    def _ring_where(self, s: float) -> tuple[str, float]:
+        """Edge and position of arc length ``s`` on the ring, on a normal edge (the placement rule)."""
+        lap = self._loop_length
+        s %= lap
+        for edge, off, length in self._ring_edges:
+            if off <= s < off + length:
+                return edge, min(s - off, length - 0.1)
+        # inside a junction's internal lane: start of the next edge instead (shift < 0.3 m)
+        nxt = min(((off - s) % lap, edge) for edge, off, _ in self._ring_edges)[1]
+        return nxt, 0.1
+
     def _reset_ring(self) -> None:
+        cfg = self.config
+        if self._need_load or self._warm is None or self._episodes_since_load >= cfg.ring_rebuild_every:
+            self._build_ring()
+        elif not self._replay_ring():
+            log.warning("ring: %d vehicles in the simulation, expected %d; rebuilding the traffic",
+                        self.api.vehicle.getIDCount(), len(self._warm))  # fmt: skip
+            self._build_ring()
+
+    def _build_ring(self) -> None:
+        """Reload, place the traffic at standstill from the seeded RNG, warm up; record the warm state."""
         cfg, api, rng = self.config, self.api, self._rng
         assert rng is not None
         self._load()
+        if not self._ring_edges:
+            self._ring_edges = [(e, self._offsets[e], api.lane.getLength(f"{e}_0")) for e in _RING_EDGES]
         lap = self._loop_length
-        normal = [(e, self._offsets[e], api.lane.getLength(f"{e}_0")) for e in _RING_EDGES]
-
-        def where(s: float) -> tuple[str, float]:
-            s %= lap
-            for edge, off, length in normal:
-                if off <= s < off + length:
-                    return edge, min(s - off, length - 0.1)
-            # inside a junction's internal lane: start of the next edge instead (shift < 0.3 m)
-            nxt = min(((off - s) % lap, edge) for edge, off, _ in normal)[1]
-            return nxt, 0.1
-
+        where = self._ring_where
         counts = [int(rng.integers(cfg.ring_outer_vehicles[0], cfg.ring_outer_vehicles[1] + 1)),
                   int(rng.integers(cfg.ring_inner_vehicles[0], cfg.ring_inner_vehicles[1] + 1))]  # fmt: skip
         counts[cfg.ego_lane] += 1  # the ego is vehicle 0 of its lane
@@ -300,7 +352,32 @@ class LaneChangeEnv(gym.Env):
                                 departPos=f"{p:.3f}", departSpeed="0")  # fmt: skip
         api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)
         self._warmup(cfg.warmup_seconds, min_steps=1)
+        # the state a re-placement puts back; like here, one simulation step follows it
+        self._warm = None
+        if cfg.ring_rebuild_every > 1:
+            self._warm = WarmState.record(api, self._offsets, fixed_lane=cfg.ego_lane)
         self._subscribe_ego()
+        self._episodes_since_load = 1
+
+    def _replay_ring(self) -> bool:
+        """Put the last build's warm traffic back, the other lanes rotated (:mod:`sumo_bridge.warm_state`),
+        then one simulation step, as after a build's warm-up.
+
+        False (nothing changed) if a vehicle of the recorded state has left the simulation.
+        """
+        api, rng, warm = self.api, self._rng, self._warm
+        assert rng is not None and warm is not None
+        if api.vehicle.getIDCount() != len(warm):
+            return False
+        warm.apply(api, float(rng.uniform(0.0, self._loop_length)), self._ring_where)
+        # a lane change the agent commanded just before the last episode ended is still pending
+        # (it holds for step_seconds); cancel it so the ego stays on its start lane
+        api.vehicle.changeLane(self.ego_id, self.config.ego_lane, 0.0)
+        # The step also renews every subscription result: right after moveTo, SUMO 1.28 answers
+        # a (re)subscription partly from the previous step's positions.
+        self._sim_step()
+        self._episodes_since_load += 1
+        return True
 
     def _reset_urban(self) -> None:
         cfg, api, rng = self.config, self.api, self._rng

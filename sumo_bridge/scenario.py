@@ -69,6 +69,14 @@ class ScenarioConfig:
     min_spacing: float = param(
         10.0, "ring: smallest front-to-front distance between vehicles placed on one lane (m)", low=8.0
     )
+    ring_rebuild_every: int = param(
+        4,
+        "ring: a reset without a seed rebuilds the traffic (load, seeded placement, 5 s warm-up; 8-14 ms, "
+        "20-45 ms under load) once every this many episodes; the resets in between put the last build's warm "
+        "traffic back in place with the inner lane rotated by a fresh random offset and one SUMO step "
+        "(~0.8 ms under load, sumo_bridge.warm_state). 1 = rebuild at every reset. reset(seed=...) always rebuilds",
+        low=1,
+    )
     urban_depart_pos: tuple[float, ...] = param(
         (40.0, 400.0), "urban: [min, max] position (m) along the bridge where the ego is inserted", low=0.0
     )

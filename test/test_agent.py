@@ -350,3 +350,91 @@ def test_save_is_atomic_and_load_rejects_other_shapes(tmp_path) -> None:
     other = DQNAgent((5,), np.float32, 2, agent.cfg, agent.replay_cfg)
     with pytest.raises(ValueError, match="obs_shape"):
         other.load_state_dict(state)
+
+
+class AutogradReferenceAgent(DQNAgent):
+    """The gradient step written the straightforward way (autograd, as the learner did before the
+    hand-written backward of der_ros/agent/mlp_backward.py): the fast step must match it bit for bit."""
+
+    def _gradient_step(self) -> tuple[float, float, float]:
+        c = self.cfg
+        batch = self.replay.sample(c.batch_size)
+        obs, next_obs = torch.from_numpy(batch.obs), torch.from_numpy(batch.next_obs)
+        actions = torch.from_numpy(batch.actions.astype(np.int64))
+        rewards = torch.from_numpy(batch.rewards.astype(np.float32)) * c.reward_scale
+        terminated = torch.from_numpy(batch.terminated)
+        weights = torch.from_numpy(batch.weights.astype(np.float32))
+        with torch.no_grad():
+            next_q = self.target_net(next_obs)
+            if c.double_dqn:
+                next_v = next_q.gather(1, self.q_net(next_obs).argmax(1, keepdim=True)).squeeze(1)
+            else:
+                next_v = next_q.max(1).values
+            y = rewards + c.gamma * (1.0 - terminated.float()) * next_v
+        q = self.q_net(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
+        td = y - q
+        per_sample = td.square() if c.loss == "mse" else torch.nn.functional.smooth_l1_loss(q, y, reduction="none")
+        loss = (weights * per_sample).mean()
+        for p in self.q_net.parameters():
+            p.grad.zero_()
+        loss.backward()
+        if c.max_grad_norm > 0.0:
+            norm = torch.linalg.vector_norm(self._flat_grad)
+            self._flat_grad.mul_(torch.clamp(c.max_grad_norm / (norm + 1e-6), max=1.0))
+        opt = self.optimizer
+        opt.step_count += 1
+        with torch.no_grad():  # Adam, as FlatAdam wrote it before (fresh tensors every step)
+            g, t = opt.grads, opt.step_count
+            opt.exp_avg.lerp_(g, 1.0 - opt.beta1)
+            opt.exp_avg_sq.mul_(opt.beta2).addcmul_(g, g, value=1.0 - opt.beta2)
+            denom = (opt.exp_avg_sq.sqrt() / (1.0 - opt.beta2**t) ** 0.5).add_(opt.eps)
+            opt.params.addcdiv_(opt.exp_avg, denom, value=-opt.lr / (1.0 - opt.beta1**t))
+        self.grad_steps += 1
+        if self.grad_steps % c.target_update_interval == 0:
+            self.update_target()
+        td_np = td.detach().numpy()
+        self.replay.update_priorities(batch.indices, td_np)
+        n = len(td_np)
+        return float(loss.item()), float(np.add.reduce(q.detach().numpy())) / n, float(np.add.reduce(np.abs(td_np))) / n
+
+
+def _bits(t: torch.Tensor) -> bytes:
+    return t.detach().contiguous().numpy().tobytes()
+
+
+@pytest.mark.parametrize(
+    "kind, overrides",
+    [
+        ("uniform", {}),
+        ("per", {"max_grad_norm": 0.5, "batch_size": 50}),  # clipping in most steps; IS weights with an inexact 1/B
+        ("der", {"reward_scale": 0.01, "batch_size": 50}),  # 1/B inexact in float32
+        ("der", {"double_dqn": True, "tau": 0.3, "hidden_sizes": [16, 8]}),  # two hidden layers
+        ("uniform", {"max_grad_norm": 0.0, "target_update_interval": 7}),
+        ("per", {"loss": "huber"}),  # autograd path in both
+    ],
+)
+def test_learner_step_is_bit_identical_to_the_autograd_reference(kind: str, overrides: dict) -> None:
+    dqn = DQNConfig(**{"batch_size": 32, "hidden_sizes": [32], "learning_starts": 40, "gamma": 0.98,
+                       "target_update_interval": 20, "max_grad_norm": 10.0, "epsilon_decay_steps": 100, **overrides})  # fmt: skip
+    rep = ReplayConfig(kind=kind, capacity=400, lam=0.9, h2_capacity=128, promote_mode="copy")
+    fast = DQNAgent((5,), np.float32, 3, dqn, rep, seed=3)
+    ref = AutogradReferenceAgent((5,), np.float32, 3, dqn, rep, seed=3)
+    assert (fast._mlp is not None) == (dqn.loss == "mse")  # the hand-written backward is what is tested
+    rng = np.random.default_rng(0)
+    for _ in range(260):
+        obs, nxt = rng.normal(size=(2, 5)).astype(np.float32)
+        a = fast.act(obs)
+        assert ref.act(obs) == a
+        r, term, trunc = float(rng.normal() * 50.0), bool(rng.random() < 0.1), bool(rng.random() < 0.05)
+        for agent in (fast, ref):
+            agent.observe(obs, a, r, nxt, term, trunc)
+        assert fast.learn() == ref.learn()  # metrics: the same floats
+    assert fast.grad_steps == ref.grad_steps > 200
+    for mine, theirs in ((fast.q_net, ref.q_net), (fast.target_net, ref.target_net)):
+        for p, q in zip(mine.parameters(), theirs.parameters()):
+            assert _bits(p) == _bits(q)
+    assert _bits(fast.optimizer.exp_avg) == _bits(ref.optimizer.exp_avg)
+    assert _bits(fast.optimizer.exp_avg_sq) == _bits(ref.optimizer.exp_avg_sq)
+    sa, sb = fast.replay.state_dict(), ref.replay.state_dict()
+    for key in sa:  # priorities and DER weights come from the TD errors
+        assert np.asarray(sa[key]).tobytes() == np.asarray(sb[key]).tobytes(), key

@@ -34,7 +34,8 @@ def _small(steps: int, **extra: object) -> dict[str, object]:
         "agent.hidden_sizes": [32], "agent.batch_size": 32, "agent.learning_starts": 100,
         "agent.epsilon_decay_steps": 300, "agent.target_update_interval": 50, "replay.capacity": 2000,
         "replay.h2_capacity": 320, "replay.kind": "der", "replay.lam": 0.5, "train.total_steps": steps,
-        "train.log_interval": 50, "train.tensorboard": False, "train.progress": False, **extra,
+        "train.log_interval": 50, "train.tensorboard": False, "train.progress": False, "train.eval_interval": 0,
+        **extra,
     }  # fmt: skip
 
 

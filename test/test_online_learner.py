@@ -181,7 +181,10 @@ def test_with_real_dqn_agent_buffers_fill_and_learning_starts():
         for d in L.on_state(k * S, rng.normal(size=2).astype(np.float32)):
             assert d.action is None or 0 <= d.action < 3
         got.update(L.learn())
-    assert agent.replay.h1_size == L.counters["transitions"] == 36  # 4 episodes x 9 transitions (H2 holds copies)
+    # 4 episodes x 9 transitions, all in H1; the default promote_mode 'copy' keeps them there and
+    # adds copies of the high-|TD| ones to H2, so the whole buffer holds at least as many
+    assert agent.replay.h1_size == L.counters["transitions"] == 36
+    assert 36 <= len(agent.replay) == agent.replay.h1_size + agent.replay.h2_size
     assert "losses/td_loss" in got and np.isfinite(got["losses/td_loss"])
 
 

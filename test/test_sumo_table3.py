@@ -37,7 +37,7 @@ def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> N
 
     with open(Path(spec.run_dir) / "episodes.csv", newline="") as fh:
         n_episodes = sum(1 for _ in csv.DictReader(fh))
-    assert n_episodes >= 5  # random actions on the ring end episodes quickly
+    assert n_episodes >= 3  # random actions on the ring end episodes quickly (seed 0: 4 since re-placed resets, 5 before)
 
     run = load_result(spec, ("charts/episode_success", "charts/episode_collision"))
     succ = run.metrics["charts/episode_success"][1]

@@ -113,6 +113,7 @@ def small_overrides(steps: int, **extra: object) -> dict[str, object]:
         "train.tensorboard": False,
         "train.progress": False,
         "train.final_eval_episodes": 0,
+        "train.eval_interval": 0,
         **extra,
     }
 

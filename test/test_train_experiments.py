@@ -165,7 +165,8 @@ def test_table2_short_atari_run(tmp_path: Path) -> None:
 
 
 def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
-    from der_ros.experiments.suite import PAPER_METHODS, SuiteRunError, plan_runs, run_specs
+    from der_ros.experiments.backends import run_specs
+    from der_ros.experiments.suite import PAPER_METHODS, SuiteRunError, plan_runs
 
     dqn = [m for m in PAPER_METHODS if m.name == "dqn"]
     small = {"train.total_steps": 200, "agent.learning_starts": 50, "agent.hidden_sizes": [16],

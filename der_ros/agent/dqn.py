@@ -34,7 +34,8 @@ import torch.nn.functional as F
 
 from der_ros.agent.config import DQNConfig
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
-from der_ros.agent.networks import flatten_parameters, make_q_network
+from der_ros.agent.mlp_backward import MLPBackward
+from der_ros.agent.networks import MLPQNetwork, flatten_parameters, make_q_network
 from der_ros.agent.optim import FlatAdam
 from der_ros.agent.schedules import LinearSchedule
 from der_ros.configuration import from_dict, to_dict
@@ -104,6 +105,12 @@ class DQNAgent:
         self._target_flat, _ = flatten_parameters(self.target_net, with_grad=False)
         self.optimizer = FlatAdam(self._flat, self._flat_grad, lr=dqn_cfg.lr)
         self.replay = make_replay(replay_cfg, self.obs_shape, self.obs_dtype, dqn_cfg.batch_size, replay_seed)
+        # the learner step's constants and buffers (see _gradient_step)
+        self._on_cpu = self.device.type == "cpu"
+        self._gamma32 = np.float32(dqn_cfg.gamma)
+        self._mlp = MLPBackward(self.q_net) if isinstance(self.q_net, MLPQNetwork) and dqn_cfg.loss == "mse" else None
+        self._inv_batch = torch.ones((), device=self.device).div(dqn_cfg.batch_size)  # mean's backward: 1/B
+        self._grad_out = torch.zeros(dqn_cfg.batch_size, self.n_actions, device=self.device)
         self.epsilon_schedule = LinearSchedule(dqn_cfg.epsilon_start, dqn_cfg.epsilon_end, dqn_cfg.epsilon_decay_steps)
 
         #: environment steps observed (drives epsilon, learning_starts and train_freq)
@@ -190,19 +197,23 @@ class DQNAgent:
         return metrics
 
     def _tensor(self, array: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(array)).to(self.device, non_blocking=True)
+        t = torch.from_numpy(np.ascontiguousarray(array))  # no copy
+        return t if self._on_cpu else t.to(self.device, non_blocking=True)
 
     def td_targets(self, rewards: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
         """y = r + gamma * (1 - terminated) * V_target(s') (eq. 1); truncation never cuts the bootstrap."""
-        with torch.no_grad():
-            next_q = self.target_net(next_obs)
-            if self.cfg.double_dqn:
-                best = self.q_net(next_obs).argmax(1, keepdim=True)
-                next_v = next_q.gather(1, best).squeeze(1)
-            else:
-                next_v = next_q.max(1).values
-            not_done = 1.0 - terminated.float()
-            return rewards + self.cfg.gamma * not_done * next_v
+        return self._targets(rewards, next_obs, self.cfg.gamma * (1.0 - terminated.float()))
+
+    @torch.no_grad()
+    def _targets(self, rewards: torch.Tensor, next_obs: torch.Tensor, discount: torch.Tensor) -> torch.Tensor:
+        """y = r + discount * V_target(s'), ``discount`` = gamma, or 0 where the episode terminated."""
+        next_q = self.target_net(next_obs)
+        if self.cfg.double_dqn:
+            best = self.q_net(next_obs).argmax(1, keepdim=True)
+            next_v = next_q.gather(1, best).squeeze(1)
+        else:
+            next_v = next_q.amax(1)
+        return rewards + discount * next_v
 
     def gradient_step(self) -> tuple[float, float, float]:
         """One update now, ignoring the schedule (offline training from recorded transitions).
@@ -216,36 +227,48 @@ class DQNAgent:
         return self._gradient_step()
 
     def _gradient_step(self) -> tuple[float, float, float]:
+        """Sample, eq. 1/2 loss, gradient, clipping, Adam, target update, priorities back to the replay.
+
+        With the MLP and the squared loss the gradient is computed by :class:`MLPBackward`
+        (autograd's own kernels, without autograd's bookkeeping; bit-identical results), else by
+        autograd. Both paths give the same numbers (``test/test_agent.py`` checks them against a
+        plain autograd step).
+        """
         batch = self.replay.sample(self.cfg.batch_size)
         obs = self._tensor(batch.obs)
         next_obs = self._tensor(batch.next_obs)
-        actions = self._tensor(batch.actions.astype(np.int64, copy=False))
+        actions = self._tensor(batch.actions.astype(np.int64, copy=False)).unsqueeze(1)
         rewards = self._tensor(batch.rewards.astype(np.float32, copy=False))
         if self.cfg.reward_scale != 1.0:
             rewards = rewards * self.cfg.reward_scale
-        terminated = self._tensor(batch.terminated)
+        # gamma * (1 - terminated) as float32, the values torch computes for it, in one numpy call
+        discount = self._tensor(np.where(batch.terminated, np.float32(0.0), self._gamma32))
         weights = self._tensor(batch.weights.astype(np.float32, copy=False))
 
-        y = self.td_targets(rewards, next_obs, terminated)
-        q = self.q_net(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
-        td = y - q  # delta of eq. 2
-        if self.cfg.loss == "mse":
-            per_sample = td.square()
+        y = self._targets(rewards, next_obs, discount)
+        if self._mlp is not None:
+            q = self._mlp.forward(obs).gather(1, actions).squeeze(1)
+            td = y - q  # delta of eq. 2
+            loss = (weights * td.square()).mean()
+            # d loss / d q in the order autograd evaluates it: mean (1/B), weights, square (2 delta), minus
+            grad_q = (self._inv_batch * weights) * (td * -2.0)
+            self._mlp.backward(self._grad_out.zero_().scatter_add_(1, actions, grad_q.unsqueeze(1)))
         else:
-            per_sample = F.smooth_l1_loss(q, y, reduction="none")
-        loss = (weights * per_sample).mean()
+            q = self.q_net(obs).gather(1, actions).squeeze(1)
+            td = y - q
+            if self.cfg.loss == "mse":
+                per_sample = td.square()
+            else:
+                per_sample = F.smooth_l1_loss(q, y, reduction="none")
+            loss = (weights * per_sample).mean()
+            self._flat_grad.zero_()
+            loss.backward()
+            q, td, loss = q.detach(), td.detach(), loss.detach()
         loss_value = float(loss.item())
-        if not math.isfinite(loss_value):
+        if not math.isfinite(loss_value):  # checked before the optimizer moves a weight
             raise self._diverged(f"TD loss = {loss_value}")
-
-        self._flat_grad.zero_()
-        loss.backward()
         if self.cfg.max_grad_norm > 0.0:
-            # global norm over all parameters = norm of the one flat gradient buffer
-            norm = torch.linalg.vector_norm(self._flat_grad)
-            if not math.isfinite(float(norm)):
-                raise self._diverged(f"gradient norm = {float(norm)}")
-            self._flat_grad.mul_(torch.clamp(self.cfg.max_grad_norm / (norm + 1e-6), max=1.0))
+            self._clip_gradient()
         elif not bool(torch.isfinite(self._flat_grad).all()):
             raise self._diverged("a non-finite gradient")
         self.optimizer.step()
@@ -253,10 +276,10 @@ class DQNAgent:
         if self.grad_steps % self.cfg.target_update_interval == 0:
             self.update_target()
 
-        td_np = td.detach().cpu().numpy().astype(np.float32, copy=False)
+        td_np = td.cpu().numpy().astype(np.float32, copy=False)
         self.replay.update_priorities(batch.indices, td_np)
         n = td_np.shape[0]
-        q_sum = float(np.add.reduce(q.detach().cpu().numpy()))  # (np.mean costs ~4x more per call)
+        q_sum = float(np.add.reduce(q.cpu().numpy()))  # (np.mean costs ~4x more per call)
         return loss_value, q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
 
     def _diverged(self, what: str) -> LearnerDiverged:
@@ -268,6 +291,21 @@ class DQNAgent:
     def parameters_finite(self) -> bool:
         """True when every weight of the online and target networks is finite (one flat buffer each)."""
         return bool(torch.isfinite(self._flat).all()) and bool(torch.isfinite(self._target_flat).all())
+
+    def _clip_gradient(self) -> None:
+        """Scale the gradient to global norm ``max_grad_norm`` if it is larger.
+
+        Global norm over all parameters = norm of the one flat gradient buffer. The factor is
+        ``min(max_norm / (norm + 1e-6), 1)`` computed in float32 exactly as torch evaluates it on
+        a 0-d tensor (``max_norm / t`` is ``t.reciprocal() * max_norm``), but as numpy scalars:
+        four tensor operations fewer, and none at all when no clipping is needed.
+        """
+        norm = np.float32(torch.linalg.vector_norm(self._flat_grad).item())
+        if not math.isfinite(norm):  # a non-finite gradient: the step is refused, no weight moves
+            raise self._diverged(f"gradient norm = {float(norm)}")
+        coef = (np.float32(1.0) / (norm + np.float32(1e-6))) * np.float32(self.cfg.max_grad_norm)
+        if coef < 1.0:
+            self._flat_grad.mul_(float(coef))
 
     @torch.no_grad()
     def update_target(self) -> None:

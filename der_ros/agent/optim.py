@@ -43,6 +43,7 @@ class FlatAdam:
         self.eps = float(eps)
         self.exp_avg = torch.zeros_like(params)
         self.exp_avg_sq = torch.zeros_like(params)
+        self._denom = torch.empty_like(params)  # reused every step (same kernels as a fresh tensor)
         self.step_count = 0
 
     @property
@@ -62,7 +63,7 @@ class FlatAdam:
         self.exp_avg_sq.mul_(self.beta2).addcmul_(g, g, value=1.0 - self.beta2)
         bias1 = 1.0 - self.beta1**t
         bias2_sqrt = math.sqrt(1.0 - self.beta2**t)
-        denom = (self.exp_avg_sq.sqrt() / bias2_sqrt).add_(self.eps)
+        denom = torch.sqrt(self.exp_avg_sq, out=self._denom).div_(bias2_sqrt).add_(self.eps)
         self.params.addcdiv_(self.exp_avg, denom, value=-self.lr / bias1)
 
     def state_dict(self) -> dict[str, Any]:

@@ -11,20 +11,19 @@ groups, e.g. one per Atari game). The suite is resumable:
 
 Ctrl-C: every worker gets the SIGINT too, finishes its current step, writes a checkpoint and
 stops; queued runs are cancelled. Rerunning the same command continues where it stopped.
+
+This module plans runs and executes one (:func:`run_one`); :mod:`der_ros.experiments.backends`
+executes many, as local processes or as Ray tasks (``--backend``), with the rules above.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
 import shlex
-import signal
-from collections.abc import Iterable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +41,7 @@ __all__ = [
     "RunResult",
     "plan_runs",
     "run_one",
-    "run_specs",
-    "run_suite",
+    "SuiteRunError",
     "load_result",
     "default_jobs",
 ]
@@ -137,32 +135,34 @@ def _resolve(spec: RunSpec) -> Any:
     return load_experiment_config(spec.config_path, spec.all_overrides())
 
 
-def run_one(spec: RunSpec) -> dict[str, Any]:
-    """Execute (or skip, or resume) one run; returns its summary as a dict. Top level: picklable."""
+def run_one(
+    spec: RunSpec,
+    run_dir: str | Path | None = None,
+    cfg: Any = None,
+    on_checkpoint: Callable[[Path, int], None] | None = None,
+) -> dict[str, Any]:
+    """Execute (or skip, or resume) one run; returns its summary as a dict. Top level: picklable.
+
+    ``run_dir`` is where the files are written (default ``spec.run_dir``): the Ray backend runs in
+    a temporary folder of its worker and ships the files to ``spec.run_dir`` on the driver. ``cfg``
+    is the resolved config (default: read ``spec.config_path``), for workers that do not have the
+    driver's config file. ``on_checkpoint`` goes to :func:`der_ros.train.runner.train`.
+    """
     import torch
 
     from der_ros.train.runner import CHECKPOINT_NAME, train
 
     torch.set_num_threads(1)
-    cfg = _resolve(spec)
-    run_dir = Path(spec.run_dir)
+    cfg = cfg if cfg is not None else _resolve(spec)
+    run_dir = Path(run_dir if run_dir is not None else spec.run_dir)
     if _finished(run_dir, cfg.train.total_steps):
         return json.loads((run_dir / "summary.json").read_text()) | {"skipped": True}
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "command.txt").write_text(spec.command() + "\n")
     ckpt = run_dir / CHECKPOINT_NAME
     resume = ckpt if ckpt.is_file() else None
-    summary = train(cfg, run_dir=run_dir, resume=resume)
+    summary = train(cfg, run_dir=run_dir, resume=resume, on_checkpoint=on_checkpoint)
     return dict(summary.__dict__)
-
-
-def _worker_init() -> None:
-    """Idle workers ignore Ctrl-C (a running training installs its own handler, which stops
-    after the current step and writes a checkpoint); one torch thread per worker."""
-    import torch
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    torch.set_num_threads(1)
 
 
 def default_jobs() -> int:
@@ -189,71 +189,6 @@ def plan_runs(
     ]
 
 
-def run_specs(specs: Sequence[RunSpec], jobs: int | None = None) -> list[dict[str, Any]]:
-    """Run the specs (finished ones are skipped), ``jobs`` at a time in spawned worker processes.
-
-    Configs are validated in this process first, so a bad config fails before any run starts.
-    """
-    todo = []
-    for spec in specs:
-        cfg = _resolve(spec)  # raises ConfigError before any run starts
-        if _finished(Path(spec.run_dir), cfg.train.total_steps):
-            log.info("skip finished run %s", spec.run_dir)
-        else:
-            todo.append(spec)
-    jobs = max(1, min(jobs or default_jobs(), max(1, len(todo))))
-    results: list[dict[str, Any]] = []
-    if not todo:
-        return results
-    log.info("%d runs to do (%d finished), %d in parallel", len(todo), len(specs) - len(todo), jobs)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    ctx = get_context("spawn")  # fresh interpreters: no forked torch/threads state
-    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init)
-    pending: dict[Future[dict[str, Any]], RunSpec] = {pool.submit(run_one, s): s for s in todo}
-    done_count = 0
-    failures: list[tuple[RunSpec, BaseException]] = []
-    try:
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                spec = pending.pop(fut)
-                done_count += 1
-                try:
-                    summary = fut.result()
-                except Exception as exc:  # one failed run must not stop the others
-                    failures.append((spec, exc))
-                    log.error("[%d/%d] run %s failed: %s: %s", done_count, len(todo), spec.run_dir,
-                              type(exc).__name__, exc)
-                    continue
-                results.append(summary)
-                log.info(
-                    "[%d/%d] %s seed %d: %d steps, %d episodes, mean return %.2f%s",
-                    done_count,
-                    len(todo),
-                    f"{spec.group}/{spec.method.name}" if spec.group else spec.method.name,
-                    spec.seed,
-                    summary.get("steps", 0),
-                    summary.get("episodes", 0),
-                    summary.get("mean_return", float("nan")),
-                    " (interrupted)" if summary.get("interrupted") else "",
-                )
-    except KeyboardInterrupt:
-        # A terminal's Ctrl-C reaches the workers too, but a SIGINT/SIGTERM sent to this process
-        # alone (a background job) would leave them training to the end: pass it on.
-        for child in multiprocessing.active_children():
-            try:
-                os.kill(child.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-        log.warning("interrupted: workers write checkpoints; rerun the same command to continue")
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-    if failures:
-        raise SuiteRunError(failures)
-    return results
-
-
 class SuiteRunError(RuntimeError):
     """Some runs of a suite raised; the others finished and are kept (a rerun redoes only these)."""
 
@@ -264,20 +199,6 @@ class SuiteRunError(RuntimeError):
         lines = [f"{len(self.failures)} run(s) failed (the others finished; rerun the same command to retry these):"]
         lines += [f"  {spec.run_dir}: {type(exc).__name__}: {exc}" for spec, exc in self.failures]
         super().__init__("\n".join(lines))
-
-
-def run_suite(
-    config_path: str | Path,
-    methods: Sequence[Method],
-    seeds: Sequence[int],
-    out_dir: str | Path,
-    jobs: int | None = None,
-    overrides: dict[str, Any] | None = None,
-) -> list[RunResult]:
-    """Plan, run (skipping finished runs) and load every (method, seed) of one suite."""
-    specs = plan_runs(config_path, methods, seeds, out_dir, overrides)
-    run_specs(specs, jobs)
-    return [load_result(s) for s in specs]
 
 
 def load_result(spec: RunSpec, metric_names: Iterable[str] | None = None) -> RunResult:

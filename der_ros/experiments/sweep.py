@@ -26,6 +26,7 @@ import yaml
 from der_ros.configuration import ConfigError
 from der_ros.experiments.aggregate import final_evaluation, iqm_interval
 from der_ros.experiments.aggregate import iqm as iqm_point
+from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.report import write_markdown
 from der_ros.experiments.stats import average_score, max_moving_average
 from der_ros.experiments.suite import (
@@ -34,7 +35,6 @@ from der_ros.experiments.suite import (
     environment_info,
     load_result,
     plan_runs,
-    run_specs,
 )
 from der_ros.train.config import add_set_argument, parse_assignments
 
@@ -131,6 +131,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rank-by", dest="rank_by", choices=RANK_KEYS, default="eval_return",
                         help="score that ranks the grid points (IQM over seeds; default eval_return)")  # fmt: skip
     add_set_argument(parser, help="config override for every run; VALUE is YAML (repeatable)")
+    add_backend_arguments(parser)
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -209,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     overrides = dict(parse_assignments(args.set_values, "command line", label="--set"))
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
-    summaries = run_specs(specs, args.jobs)
+    summaries = run_specs(specs, backend=backend_from_args(args))
     if any(s.get("interrupted") for s in summaries):
         print("der sweep: interrupted; rerun the same command to continue")
         return 130

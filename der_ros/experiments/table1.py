@@ -34,6 +34,7 @@ from der_ros.experiments.aggregate import (
     probability_of_improvement,
     significance_sentence,
 )
+from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.baselines import BaselineJob, baseline_names, run_baselines
 from der_ros.experiments.plots import plot_eval_curves, plot_td_traces
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
@@ -46,7 +47,6 @@ from der_ros.experiments.suite import (
     methods_by_name,
     plan_runs,
     report_interrupted,
-    run_specs,
     suite_command,
     suite_overrides,
     suite_seeds,
@@ -76,6 +76,7 @@ TD_METRICS = ("losses/abs_td_error", "replay/h2_weight_mean", "replay/h2_size", 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_suite_arguments(parser, default_config="config/cartpole.yaml", default_out="runs/table1", default_seeds=10)
     parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
+    add_backend_arguments(parser)
 
 
 def score_run(run: RunResult) -> dict[str, float]:
@@ -173,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
-    summaries = run_specs(specs, args.jobs)
+    summaries = run_specs(specs, backend=backend_from_args(args))
     if report_interrupted("table1", summaries):
         return 130
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.plots import plot_learning_curves, save_figure
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean_of_last
@@ -37,7 +38,6 @@ from der_ros.experiments.suite import (
     methods_by_name,
     plan_runs,
     report_interrupted,
-    run_specs,
     suite_command,
     suite_overrides,
     suite_seeds,
@@ -78,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="games by name without spaces, e.g. Breakout SpaceInvaders (default: all four of the paper)",
     )
+    add_backend_arguments(parser)
 
 
 def default_atari_jobs(specs: Sequence[RunSpec]) -> int:
@@ -120,8 +121,8 @@ def run(args: argparse.Namespace) -> int:
     specs: list[RunSpec] = []
     for game, env_id in games.items():
         specs += plan_runs(args.config, methods, seeds, args.out, {**base, "env.id": env_id}, group=_game_key(game))
-    jobs = args.jobs or default_atari_jobs(specs)
-    summaries = run_specs(specs, jobs)
+    jobs = args.jobs or default_atari_jobs(specs)  # local processes; Ray places runs by their resources
+    summaries = run_specs(specs, backend=backend_from_args(args, jobs=jobs))
     if report_interrupted("table2", summaries):
         return 130
 

@@ -40,6 +40,7 @@ from der_ros.experiments.aggregate import (
     probability_of_improvement,
     significance_sentence,
 )
+from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.baselines import (
     DEFAULT_PARAMS_FILE,
     BaselineJob,
@@ -59,7 +60,6 @@ from der_ros.experiments.suite import (
     methods_by_name,
     plan_runs,
     report_interrupted,
-    run_specs,
     suite_command,
     suite_overrides,
     suite_seeds,
@@ -99,6 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline-params", dest="baseline_params", default=None,
                         help="tuned gap-acceptance thresholds (default config/baselines.yaml)")  # fmt: skip
     parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
+    add_backend_arguments(parser)
 
 
 def score_run(run: RunResult) -> dict[str, float]:
@@ -246,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
     specs: list[RunSpec] = []
     for net in args.networks:
         specs += plan_runs(configs[net], methods, seeds, args.out, overrides, group=net)
-    summaries = run_specs(specs, args.jobs)
+    summaries = run_specs(specs, backend=backend_from_args(args))
     if report_interrupted("table3", summaries):
         return 130
     results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in methods} for net in args.networks}

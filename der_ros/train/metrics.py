@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["MetricsWriter", "MeanAccumulator", "read_metrics_csv", "read_episodes_csv"]
+__all__ = ["MetricsWriter", "MeanAccumulator", "read_metrics_csv", "read_episodes_csv", "drop_metric_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,28 @@ def _truncate_csv(path: Path, step_column: str, max_step: int) -> None:
         w = csv.DictWriter(fh, fieldnames=list(fieldnames))
         w.writeheader()
         w.writerows(kept)
+    tmp.replace(path)
+
+
+def drop_metric_rows(path: str | Path, step: int, prefix: str) -> None:
+    """Remove the ``metrics.csv`` rows of ``step`` whose name starts with ``prefix``.
+
+    A run resumed at a step where it evaluates redoes that evaluation (the checkpoint may follow a
+    final evaluation with other settings); its ``eval/*`` rows must not appear twice.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        return
+    kept = [rows[0]] + [r for r in rows[1:] if not (int(float(r[0])) == step and r[2].startswith(prefix))]
+    if len(kept) == len(rows):
+        return
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as fh:
+        csv.writer(fh).writerows(kept)
     tmp.replace(path)
 
 

@@ -28,6 +28,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -52,7 +53,7 @@ from der_ros.train.evaluation import (
     truncate_evaluations,
     write_eval_row,
 )
-from der_ros.train.metrics import MeanAccumulator, MetricsWriter
+from der_ros.train.metrics import MeanAccumulator, MetricsWriter, drop_metric_rows
 from der_ros.train.resume import load_resume_point
 from der_ros.train.scores import max_moving_average
 
@@ -188,13 +189,33 @@ def train(
     run_dir: str | Path | None = None,
     resume: str | Path | None = None,
     on_episode: Callable[[int, int, float], None] | None = None,
+    on_checkpoint: Callable[[Path, int], None] | None = None,
 ) -> RunSummary:
     """Train per ``cfg``; returns a :class:`RunSummary`. ``resume``: a checkpoint written by a run.
 
     Greedy evaluations (:mod:`der_ros.train.evaluation`) run at step 0, every ``eval_interval``
     steps and at the end, on evaluation seeds no training run uses; they never touch the training
     environment or the agent's RNGs, so a run trains the same with or without them.
+
+    ``on_checkpoint(path, step)`` is called after each periodic checkpoint (``checkpoint_interval``),
+    while the run directory is consistent (CSV files flushed up to that step): the Ray backend ships
+    the files to its driver then, so a run whose worker dies is retried from there.
+
+    The environment is closed however the run ends (also on an exception): libsumo allows one
+    simulation per process, and a reused worker process (Ray's) must be able to run the next run.
     """
+    with ExitStack() as cleanup:
+        return _train(cfg, run_dir, resume, on_episode, on_checkpoint, cleanup)
+
+
+def _train(
+    cfg: ExperimentConfig,
+    run_dir: str | Path | None,
+    resume: str | Path | None,
+    on_episode: Callable[[int, int, float], None] | None,
+    on_checkpoint: Callable[[Path, int], None] | None,
+    cleanup: ExitStack,
+) -> RunSummary:
     t_cfg = cfg.train
     check_training_seed(t_cfg.seed)
     torch.set_num_threads(t_cfg.threads)
@@ -202,18 +223,15 @@ def train(
     # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
     # runs before the run directory is created: a failed start writes nothing.
     env = make_env_from_config(cfg.env, t_cfg.seed)
-    try:
-        obs_shape, obs_dtype = obs_spec(env)
-        n_actions = int(env.action_space.n)
-        point = load_resume_point(resume, obs_shape, n_actions, resolve_device(t_cfg.device)) if resume else None
-        if point is not None:
-            cfg = point.config(cfg)  # a node checkpoint brings its own agent and replay settings
-        agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
-        if point is not None:
-            agent.load_state_dict(point.agent_state)
-    except BaseException:
-        env.close()
-        raise
+    cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
+    obs_shape, obs_dtype = obs_spec(env)
+    n_actions = int(env.action_space.n)
+    point = load_resume_point(resume, obs_shape, n_actions, resolve_device(t_cfg.device)) if resume else None
+    if point is not None:
+        cfg = point.config(cfg)  # a node checkpoint brings its own agent and replay settings
+    agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
+    if point is not None:
+        agent.load_state_dict(point.agent_state)
     run_path.mkdir(parents=True, exist_ok=True)
     save_experiment_config(cfg, run_path / "config.yaml")
     acc = MeanAccumulator()
@@ -247,6 +265,9 @@ def train(
     else:
         obs, _ = env.reset(seed=t_cfg.seed)
 
+    redo_eval = bool(t_cfg.eval_interval) and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps
+    if resume_step is not None and redo_eval:  # the evaluation at this step is redone below, once
+        drop_metric_rows(run_path / "metrics.csv", resume_step, "eval/")
     writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=resume_step)
     eval_csv = run_path / EVALUATIONS_CSV
     if resume_step is not None:
@@ -315,7 +336,7 @@ def train(
 
     try:
         with _StopFlag() as stop:
-            if t_cfg.eval_interval and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps:
+            if redo_eval:
                 # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
                 evaluate_now(t_cfg.eval_episodes)
             while agent.steps < t_cfg.total_steps:
@@ -349,7 +370,9 @@ def train(
                 if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
                     evaluate_now(t_cfg.eval_episodes)
                 if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
-                    checkpoint()
+                    path = checkpoint()
+                    if on_checkpoint is not None:
+                        on_checkpoint(path, step)
                 if stop.stop:
                     interrupted = True
                     break
@@ -373,7 +396,7 @@ def train(
     if not interrupted and last_eval is not None and last_eval.step == agent.steps:
         last_eval.save(run_path / FINAL_EVAL_JSON)
     writer.close()
-    env.close()
+    env.close()  # before the summary, as ever; closing again at exit is a no-op
 
     elapsed = wall()
     summary = RunSummary(

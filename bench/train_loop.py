@@ -1,0 +1,282 @@
+"""Benchmark: the whole SUMO training loop on the ring, ours vs Stable-Baselines3 (not a test).
+
+In one process, on the default ring scenario (``config/ring.yaml``), one after the other:
+
+* ``env``: the environment alone with a uniformly random policy, resets included at the rate
+  the episodes end (``reset_ms_p50``: median time of those resets, the training stream's
+  unseeded resets);
+* ``learner``: our DQN learner alone, ``observe`` + ``learn`` (one gradient step, DER with
+  lambda 0.9, batch 128, the ring MLP 23-256-3) per call, on a DER buffer filled with the
+  transitions of the ``env`` run and warmed up until H2 holds promoted transitions;
+* ``limit = 1 / (1/env + 1/learner)``: what a loop that did nothing but these two would reach;
+* ``loop``: our training loop, ``der_ros.train.runner.train`` with ring.yaml (DER lambda 0.9,
+  one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the final
+  checkpoint off);
+* ``sb3_loop``: Stable-Baselines3 ``DQN.learn`` on the same environment (same gym id and
+  scenario) with the same network (one hidden layer of 256, ReLU), batch 128, buffer 50,000,
+  learning_starts, train_freq 1, gradient_steps 1, target update interval, epsilon schedule,
+  learning rate, gamma and gradient clipping. SB3's DQN always uses the Huber loss and a
+  uniform buffer: it is the peer a user would pick, not a DER implementation.
+
+Both loops are timed from the step where learning starts to their end (the learning-free
+start is excluded for both), by wall clock and by this process's CPU time. ``--repeats`` rounds
+run every part once each; rates are the best of the rounds, ratios the median over the rounds
+of the ratio within a round (parts of one round run minutes apart at most, so they share the
+machine's load better than the best-of figures do).
+libsumo allows one simulation per process, so each part closes its environment before the
+next opens one. torch runs with one thread. On a shared machine absolute numbers move with the
+load; the ratios of one run are what to compare.
+
+    .venv/bin/python bench/train_loop.py            # 4,000 decisions per loop, 3 rounds (~5 min)
+    .venv/bin/python bench/train_loop.py --quick    # 1,500 decisions, 1 repeat
+
+Only APIs that also existed before the issue-11 changes are used, so the same script measures
+an older checkout (run it from that checkout's directory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
+
+from der_ros.agent.dqn import DQNAgent  # noqa: E402
+from der_ros.train.config import ExperimentConfig, load_experiment_config  # noqa: E402
+from der_ros.train.envs import make_env_from_config  # noqa: E402
+from der_ros.train.runner import train  # noqa: E402
+
+RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
+
+
+def ring_config(steps: int) -> ExperimentConfig:
+    """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint."""
+    return load_experiment_config(
+        RING_YAML,
+        {
+            "replay.kind": "der",
+            "replay.lam": 0.9,
+            "train.total_steps": steps,
+            "train.seed": 0,
+            "train.device": "cpu",
+            "train.threads": 1,
+            "train.tensorboard": False,
+            "train.progress": False,
+            "train.save_final_checkpoint": False,
+        },
+    )
+
+
+def env_alone(cfg: ExperimentConfig, steps: int) -> tuple[float, float, list[float], list[tuple[Any, ...]]]:
+    """(env steps/s with a random policy, resets included, by wall clock and per CPU second;
+    reset times in s; the transitions)."""
+    env = make_env_from_config(cfg.env, cfg.train.seed)
+    rng = np.random.default_rng(0)
+    actions = rng.integers(0, int(env.action_space.n), size=steps)
+    transitions: list[tuple[Any, ...]] = []
+    resets: list[float] = []
+    try:
+        obs, _ = env.reset(seed=cfg.train.seed)
+        t0, c0 = time.perf_counter(), time.process_time()
+        for a in actions:
+            next_obs, r, term, trunc, _ = env.step(int(a))
+            transitions.append((obs, int(a), float(r), next_obs, bool(term), bool(trunc)))
+            if term or trunc:
+                t = time.perf_counter()
+                next_obs, _ = env.reset()
+                resets.append(time.perf_counter() - t)
+            obs = next_obs
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    finally:
+        env.close()
+    return steps / dt, steps / dc, resets, transitions
+
+
+def learner_alone(cfg: ExperimentConfig, transitions: list[tuple[Any, ...]], updates: int) -> tuple[float, float]:
+    """observe + learn calls (one gradient step each) per second and per CPU second, on a filled,
+    warmed-up DER buffer."""
+    obs_shape, obs_dtype = transitions[0][0].shape, transitions[0][0].dtype
+    agent = DQNAgent(obs_shape, obs_dtype, 3, cfg.agent, cfg.replay, seed=0, device="cpu")
+    n = len(transitions)
+    warm = max(cfg.agent.learning_starts, cfg.agent.batch_size) + 500  # fill, then 500 steps promote into H2
+    for k in range(warm):
+        agent.observe(*transitions[k % n])
+        agent.learn()
+    t0, c0 = time.perf_counter(), time.process_time()
+    for k in range(warm, warm + updates):
+        agent.observe(*transitions[k % n])
+        agent.learn()
+    dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    assert agent.grad_steps >= updates
+    return updates / dt, updates / dc
+
+
+def our_loop(cfg: ExperimentConfig) -> tuple[float, float, float, int]:
+    """Decisions per second after learning starts (wall, CPU), of the whole run (wall), and the
+    number of episodes, of runner.train."""
+    marks: list[tuple[float, float, int]] = []
+
+    def on_episode(episode: int, step: int, ret: float) -> None:
+        marks.append((time.perf_counter(), time.process_time(), step))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        summary = train(cfg, run_dir=tmp, on_episode=on_episode)
+        t_end, c_end = time.perf_counter(), time.process_time()
+    t1, c1, s1 = next(m for m in marks if m[2] >= cfg.agent.learning_starts)
+    n = summary.steps - s1
+    return n / (t_end - t1), n / (c_end - c1), summary.steps / (t_end - t0), summary.episodes
+
+
+def sb3_loop(cfg: ExperimentConfig) -> tuple[float, float, float]:
+    """Decisions per second after learning starts (wall, CPU) and of the whole run (wall) of SB3's
+    DQN with the same settings."""
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    a, steps = cfg.agent, cfg.train.total_steps
+
+    class Clock(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.start: tuple[float, float, int] | None = None
+
+        def _on_step(self) -> bool:
+            if self.start is None and self.num_timesteps >= a.learning_starts:
+                self.start = (time.perf_counter(), time.process_time(), self.num_timesteps)
+            return True
+
+    env = make_env_from_config(cfg.env, cfg.train.seed)
+    try:
+        model = DQN(
+            "MlpPolicy",
+            env,
+            learning_rate=a.lr,
+            buffer_size=cfg.replay.capacity,
+            learning_starts=a.learning_starts,
+            batch_size=a.batch_size,
+            tau=a.tau,
+            gamma=a.gamma,
+            train_freq=a.train_freq,
+            gradient_steps=a.gradient_steps,
+            target_update_interval=a.target_update_interval,
+            exploration_fraction=min(1.0, a.epsilon_decay_steps / steps),
+            exploration_initial_eps=a.epsilon_start,
+            exploration_final_eps=a.epsilon_end,
+            max_grad_norm=a.max_grad_norm,
+            policy_kwargs={"net_arch": list(a.hidden_sizes)},
+            seed=cfg.train.seed,
+            device="cpu",
+            verbose=0,
+        )
+        clock = Clock()
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=steps, callback=clock)
+        t_end, c_end = time.perf_counter(), time.process_time()
+    finally:
+        env.close()
+    assert clock.start is not None
+    t1, c1, s1 = clock.start
+    return (steps - s1) / (t_end - t1), (steps - s1) / (c_end - c1), steps / (t_end - t0)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="1,500 decisions per loop, 1 repeat")
+    parser.add_argument("--steps", type=int, default=None, help="decisions per training loop (default 4,000)")
+    parser.add_argument("--repeats", type=int, default=None, help="rounds of every part (default 3)")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    steps = args.steps or (1_500 if args.quick else 4_000)
+    repeats = args.repeats or (1 if args.quick else 3)
+    cfg = ring_config(steps)
+    if steps <= cfg.agent.learning_starts + 200:
+        parser.error(f"--steps = {steps}, expected more than learning_starts + 200 = {cfg.agent.learning_starts + 200}")
+
+    best: dict[str, float] = {}  # wall-clock rates, best of the repeats
+    cpu: dict[str, float] = {}  # rates per CPU second of this process (steadier under load)
+    whole: dict[str, float] = {}
+    resets_all: list[float] = []
+    episodes = 0
+    rounds: list[dict[str, float]] = []  # per round: the four wall and CPU rates
+
+    def keep(table: dict[str, float], name: str, value: float) -> None:
+        table[name] = max(table.get(name, 0.0), value)
+
+    for r in range(repeats):
+        env_ps, env_cpu, resets, transitions = env_alone(cfg, steps)
+        keep(best, "env", env_ps)
+        keep(cpu, "env", env_cpu)
+        resets_all += resets
+        learner_ps, learner_cpu = learner_alone(cfg, transitions, min(steps, 2_000))
+        keep(best, "learner", learner_ps)
+        keep(cpu, "learner", learner_cpu)
+        loop, loop_cpu, loop_whole, episodes = our_loop(cfg)
+        keep(best, "loop", loop)
+        keep(cpu, "loop", loop_cpu)
+        keep(whole, "loop", loop_whole)
+        sb3, sb3_cpu, sb3_whole = sb3_loop(cfg)
+        keep(best, "sb3", sb3)
+        keep(cpu, "sb3", sb3_cpu)
+        keep(whole, "sb3", sb3_whole)
+        rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "sb3": sb3, "env_cpu": env_cpu,
+                       "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
+        print(
+            f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
+            f"(reset p50 {1e3 * float(np.median(resets)):.2f} ms over {len(resets)})  learner {learner_ps:.0f} / "
+            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  sb3 {sb3:.0f} / {sb3_cpu:.0f}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def limit(t: dict[str, float], suffix: str = "") -> float:
+        return 1.0 / (1.0 / t["env" + suffix] + 1.0 / t["learner" + suffix])
+
+    def paired(num: str, den: Callable[[dict[str, float]], float]) -> float:
+        return round(float(np.median([r[num] / den(r) for r in rounds])), 3)
+
+    result = {
+        "bench": "train_loop",
+        "env": cfg.env.id,
+        "steps": steps,
+        "repeats": repeats,
+        "loop_per_s": round(best["loop"], 1),
+        "sb3_loop_per_s": round(best["sb3"], 1),
+        "env_per_s": round(best["env"], 1),
+        "learner_per_s": round(best["learner"], 1),
+        "limit_per_s": round(limit(best), 1),
+        "reset_ms_p50": round(1e3 * float(np.median(resets_all)), 3),
+        "reset_ms_mean": round(1e3 * float(np.mean(resets_all)), 3),
+        "ratio_loop_vs_sb3": paired("loop", lambda r: r["sb3"]),
+        "ratio_loop_vs_limit": paired("loop", limit),
+        "loop_per_cpu_s": round(cpu["loop"], 1),
+        "sb3_loop_per_cpu_s": round(cpu["sb3"], 1),
+        "env_per_cpu_s": round(cpu["env"], 1),
+        "learner_per_cpu_s": round(cpu["learner"], 1),
+        "limit_per_cpu_s": round(limit(cpu), 1),
+        "ratio_loop_vs_sb3_cpu": paired("loop_cpu", lambda r: r["sb3_cpu"]),
+        "ratio_loop_vs_limit_cpu": paired("loop_cpu", lambda r: limit(r, "_cpu")),
+        "loop_whole_run_per_s": round(whole["loop"], 1),
+        "sb3_whole_run_per_s": round(whole["sb3"], 1),
+        "episodes_per_loop": episodes,
+        "torch_threads": torch.get_num_threads(),
+    }
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
