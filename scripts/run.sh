@@ -4,4 +4,4 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
-exec .venv/bin/der graph --scenario ring --steps 5000 "$@"
+exec .venv/bin/der graph --scenario ring --steps 15000 "$@"

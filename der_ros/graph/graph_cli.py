@@ -56,9 +56,9 @@ def default_params_file() -> Path | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", choices=("ring", "urban"), default="ring", help="SUMO network (default ring)")
-    parser.add_argument("--steps", type=int, default=5000,
-                        help="decision steps the bridge simulates before the run ends (default 5000, about a "
-                        "minute on 2 cores)")
+    parser.add_argument("--steps", type=int, default=15000,
+                        help="decision steps the bridge simulates before the run ends (default 15000, the paper's "
+                        "training length: a few minutes on 2 cores)")
     parser.add_argument("--params", type=Path, default=None,
                         help="ROS params YAML (default: config/graph.params.yaml of der_ros)")
     parser.add_argument("--run-dir", type=Path, default=None, help="output directory (default runs/graph-<UTC time>)")
@@ -74,10 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the three nodes in one process with one executor (less IPC, one log)")
     parser.add_argument("-p", "--param", action="append", default=[], metavar="NODE:NAME=VALUE",
                         help="extra parameter, e.g. agent_node:agent.lr=0.001 (value parsed as YAML); repeatable")
-    parser.add_argument("--eval-interval", type=int, default=1000,
+    parser.add_argument("--eval-interval", type=int, default=2500,
                         help="greedy evaluation of the agent's policy every this many steps, in a second process on "
-                        "held-out seeds (default 1000; 0 = only the final one)")
-    parser.add_argument("--eval-episodes", type=int, default=100, help="episodes per periodic evaluation (default 100)")
+                        "held-out seeds (default 2500, as config/ring.yaml; 0 = only the final one)")
+    parser.add_argument("--eval-episodes", type=int, default=50, help="episodes per periodic evaluation (default 50)")
     parser.add_argument("--final-eval-episodes", type=int, default=300,
                         help="episodes of the evaluation of the trained agent at the end (default 300; 0 = none)")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots at the end")
