@@ -14,6 +14,7 @@ import sys
 
 from der_ros import __version__
 from der_ros.configuration import ConfigError
+from der_ros.interrupts import interrupts_raise
 
 #: name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -58,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     module.add_arguments(sub_parser)
     args = sub_parser.parse_args(rest)
     try:
-        return int(module.run(args) or 0)
+        with interrupts_raise():  # SIGINT may arrive ignored (background start): Ctrl-C / SIGTERM must work
+            return int(module.run(args) or 0)
     except ConfigError as exc:
         print(f"der {top.command}: configuration error: {exc}", file=sys.stderr)
         return 2

@@ -42,6 +42,9 @@ __all__ = [
     "reject_unknown_keys",
     "save_yaml",
     "field_specs",
+    "check_value",
+    "INT64_MIN",
+    "INT64_MAX",
     "add_dataclass_arguments",
     "apply_overrides",
     "flatten_names",
@@ -50,7 +53,23 @@ __all__ = [
 
 
 class ConfigError(ValueError):
-    """A configuration value is invalid. The message names the source, the key and the value."""
+    """A configuration value is invalid. The message names the source, the key and the value.
+
+    Errors about one field also carry it structured (``key``, ``value``, ``reason``: what was
+    expected), so callers that report in another layout -- ``der graph``'s one-line
+    ``file/node/name = value: reason`` for node parameters -- need not parse the message.
+    """
+
+    def __init__(self, message: str, *, key: str | None = None, value: Any = None, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
+        self.value = value
+        self.reason = reason
+
+
+#: ROS 2 integer parameters and numpy index arrays are 64-bit: a larger integer is a mistake
+#: (``capacity: 1e30``), never a setting.
+INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 
 @dataclass(frozen=True)
@@ -67,6 +86,8 @@ class FieldSpec:
     high_inclusive: bool = True
     choices: tuple[Any, ...] | None = None
     nullable: bool = False
+    #: float fields are finite unless the field says that +-inf means something (``param(allow_inf=True)``)
+    allow_inf: bool = False
 
     def describe_range(self) -> str:
         if self.choices is not None:
@@ -89,11 +110,14 @@ def param(
     high_inclusive: bool = True,
     choices: typing.Iterable[Any] | None = None,
     default_factory: Any = MISSING,
+    allow_inf: bool = False,
 ) -> Any:
     """Declare a documented, range-checked config field.
 
     ``help`` becomes the CLI help and the ROS ``ParameterDescriptor.description``.
-    ``low``/``high`` bound numeric values, ``choices`` restricts to a set.
+    ``low``/``high`` bound numeric values, ``choices`` restricts to a set. Float values must
+    be finite (``lr: .inf`` passes ``low=0`` and crashes the first gradient step) unless
+    ``allow_inf`` -- and the help text then says what infinity means.
     """
     if not help:
         raise TypeError("every config field needs a help text")
@@ -104,6 +128,7 @@ def param(
         "low_inclusive": low_inclusive,
         "high_inclusive": high_inclusive,
         "choices": tuple(choices) if choices is not None else None,
+        "allow_inf": allow_inf,
     }
     if default_factory is not MISSING:
         return dataclasses.field(default_factory=default_factory, metadata=meta)
@@ -151,6 +176,7 @@ def field_specs(cls_or_obj: Any) -> list[FieldSpec]:
                 high_inclusive=meta.get("high_inclusive", True),
                 choices=meta.get("choices"),
                 nullable=nullable,
+                allow_inf=meta.get("allow_inf", False),
             )
         )
     return out
@@ -160,23 +186,31 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+def _fail(where: str, spec: FieldSpec, value: Any, reason: str) -> ConfigError:
+    return ConfigError(f"{where}: {spec.name} = {value!r}, {reason}", key=spec.name, value=value, reason=reason)
+
+
 def _coerce(value: Any, spec: FieldSpec, where: str) -> Any:
     """Check (and minimally coerce: int -> float, list -> tuple) one value against its spec."""
     tp = spec.type
     if value is None:
         if spec.nullable:
             return None
-        raise ConfigError(f"{where}: {spec.name} = None, expected {_type_name(tp)}")
+        raise _fail(where, spec, None, f"expected {_type_name(tp)}")
     if is_dataclass(tp):
         if is_dataclass(value) and isinstance(value, tp):
             return value
         if not isinstance(value, dict):
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a mapping for {tp.__name__}")
-        return from_dict(tp, value, source=f"{where}: {spec.name}")
+            raise _fail(where, spec, value, f"expected a mapping for {tp.__name__}")
+        try:
+            return from_dict(tp, value, source=f"{where}: {spec.name}")
+        except ConfigError as exc:  # the key of a nested field is its dotted path
+            key = f"{spec.name}.{exc.key}" if exc.key else None
+            raise ConfigError(str(exc), key=key, value=exc.value, reason=exc.reason) from None
     origin = typing.get_origin(tp)
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a list")
+            raise _fail(where, spec, value, "expected a list")
         args = typing.get_args(tp)
         item_tp = args[0] if args else Any
         items = []
@@ -188,24 +222,27 @@ def _coerce(value: Any, spec: FieldSpec, where: str) -> Any:
         return tuple(items) if origin is tuple else items
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected true or false")
+            raise _fail(where, spec, value, "expected true or false")
     elif tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                value = int(value)
-            else:
-                raise ConfigError(f"{where}: {spec.name} = {value!r}, expected an integer")
+            if not (isinstance(value, float) and value.is_integer()):
+                raise _fail(where, spec, value, "expected an integer")
+            if not INT64_MIN <= value < 2.0**63:
+                raise _fail(where, spec, value, "expected an integer that fits in 64 bits")
+            value = int(value)
+        if not INT64_MIN <= value <= INT64_MAX:
+            raise _fail(where, spec, value, "expected an integer that fits in 64 bits")
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a number")
+            raise _fail(where, spec, value, "expected a number")
         value = float(value)
-        if math.isnan(value):
-            raise ConfigError(f"{where}: {spec.name} = nan, expected a number")
+        if math.isnan(value) or (math.isinf(value) and not spec.allow_inf):
+            raise _fail(where, spec, value, "expected a finite number")
     elif tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected a string")
+            raise _fail(where, spec, value, "expected a string")
     if spec.choices is not None and value not in spec.choices:
-        raise ConfigError(f"{where}: {spec.name} = {value!r}, expected {spec.describe_range()}")
+        raise _fail(where, spec, value, f"expected {spec.describe_range()}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         bad = False
         if spec.low is not None:
@@ -213,8 +250,14 @@ def _coerce(value: Any, spec: FieldSpec, where: str) -> Any:
         if spec.high is not None:
             bad |= value > spec.high if spec.high_inclusive else value >= spec.high
         if bad:
-            raise ConfigError(f"{where}: {spec.name} = {value!r}, expected {spec.describe_range()}")
+            raise _fail(where, spec, value, f"expected {spec.describe_range()}")
     return value
+
+
+def check_value(spec: FieldSpec, value: Any, source: str = "config") -> Any:
+    """One value checked (and coerced) against a field's spec; :class:`ConfigError` with
+    ``key``/``value``/``reason`` set if it does not fit (used for single ROS parameters)."""
+    return _coerce(value, spec, source)
 
 
 def validate(obj: Any, source: str = "config") -> Any:
@@ -230,7 +273,7 @@ def validate(obj: Any, source: str = "config") -> Any:
         try:
             check()
         except ConfigError as exc:
-            raise ConfigError(f"{source}: {exc}") from None
+            raise ConfigError(f"{source}: {exc}", key=exc.key, value=exc.value, reason=exc.reason) from None
     return obj
 
 
@@ -279,15 +322,29 @@ def to_dict(obj: Any) -> dict[str, Any]:
 
 
 def read_yaml_mapping(path: str | Path, expected: str = "a mapping") -> dict[str, Any]:
-    """The top-level mapping of a YAML file (``{}`` when empty); :class:`ConfigError` naming the file
-    if it is missing, not valid YAML, or not ``expected`` (a mapping) at the top level."""
+    """The top-level mapping of a YAML file; :class:`ConfigError` naming the file if it is missing,
+    not text (binary garbage: the first byte that is not UTF-8), not valid YAML, empty or only
+    comments (an empty file would silently mean "all defaults", which is never what its author
+    meant; write ``{}`` for that), or not ``expected`` (a mapping) at the top level."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
+    raw = path.read_bytes()
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not a text file: byte 0x{raw[exc.start]:02x} at offset {exc.start} is not UTF-8; expected "
+            f"a YAML file"
+        ) from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        detail = " ".join(str(exc).split())
+        raise ConfigError(f"{path}: not valid YAML: {detail}") from None
+    if data is None:
+        raise ConfigError(f"{path}: the file is empty or holds only comments; expected {expected} (write {{}} "
+                          "to use every default)")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected {expected} at the top level, got {type(data).__name__}")
     return data

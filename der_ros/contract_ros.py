@@ -9,6 +9,7 @@ already need rclpy import it; the ROS-free cores never do.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from typing import Any
 
@@ -32,9 +33,11 @@ def qos_profile(spec: QosSpec) -> QoSProfile:
     )
 
 
-def topic_qos(name: str) -> QoSProfile:
-    """The rclpy profile of a contract topic (``contract.STATE``, ``contract.CLOCK``...)."""
-    return qos_profile(topic_spec(name).qos)
+def topic_qos(name: str, depth: int | None = None) -> QoSProfile:
+    """The rclpy profile of a contract topic (``contract.STATE``, ``contract.CLOCK``...); ``depth``
+    replaces the table's KEEP_LAST depth (a subscriber's own queue, e.g. the bridge's commands)."""
+    spec = topic_spec(name).qos
+    return qos_profile(spec if depth is None else dataclasses.replace(spec, depth=int(depth)))
 
 
 def _duration_dict(d: Any) -> dict[str, int]:

@@ -22,6 +22,11 @@ since the previous step (or the default) — commands may answer any still-open 
 
 Terminal states are never opened (the bridge resets right away), so a command answering one is
 ``UNKNOWN_STEP``.
+
+Floods: once a sender is locked, :meth:`CommandGate.screen` judges a command by its sender alone,
+before the receiver decodes the rest of it (``FOREIGN_SENDER``, or ``MALFORMED`` when not even the
+sender is readable): a stray publisher's flood then costs the receiver a few microseconds per
+message and cannot push the locked sender's answer out of its queue (``bridge_node``).
 """
 
 from __future__ import annotations
@@ -110,6 +115,19 @@ class CommandGate:
         return action
 
     # -- commands ----------------------------------------------------------------------------
+    def screen(self, sender: str | None) -> Verdict | None:
+        """Early verdict from the sender alone (read before decoding the command), counted like
+        :meth:`offer`'s: FOREIGN_SENDER once a sender is locked and this is another one, MALFORMED
+        when the sender could not be read; None = decode the command and :meth:`offer` it."""
+        if sender is None:
+            verdict = Verdict.MALFORMED
+        elif self.sender is not None and sender != self.sender:
+            verdict = Verdict.FOREIGN_SENDER
+        else:
+            return None
+        self.counters[verdict.value] += 1
+        return verdict
+
     def offer(self, key: int, buttons: Sequence[int], axes: Sequence[float] = (), sender: str = "") -> tuple[Verdict, int]:
         """Judge one command; returns (verdict, action). The action is meaningful only if ACCEPTED.
 

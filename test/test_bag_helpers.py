@@ -209,3 +209,32 @@ def write_foreign_bag(path: Path, n: int = 50) -> dict[str, int]:
             )
             w.write(ci, t + 1000, TS.serialize_cdr(imu, "sensor_msgs/msg/Imu"))
     return {"/chatter": n, "/imu": n}
+
+
+def write_mistyped_bag(path: Path, n: int = 5) -> None:
+    """Our topic names (/state, /reward, /clock) carrying std_msgs/String: somebody else's graph."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = [w.add_connection(t, "std_msgs/msg/String", typestore=TS) for t in ("/state", "/reward", "/clock")]
+        for i in range(n):
+            for c in conns:
+                w.write(c, 1_000_000_000 + i * 10_000_000, TS.serialize_cdr(T["std_msgs/msg/String"](data=f"m{i}"),
+                                                                            "std_msgs/msg/String"))
+
+
+def write_json_mcap(path: Path, n: int = 5) -> None:
+    """A valid MCAP file that is no ROS bag: one JSON-encoded channel (Foxglove-style telemetry)."""
+    import json
+
+    from mcap.writer import Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        schema = w.register_schema("Telemetry", "jsonschema", json.dumps({"type": "object"}).encode())
+        channel = w.register_channel("/telemetry", "json", schema)
+        for i in range(n):
+            t = 1_000_000_000 + i * 10_000_000
+            w.add_message(channel, log_time=t, publish_time=t, data=json.dumps({"i": i}).encode())
+        w.finish()

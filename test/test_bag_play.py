@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
-from test_bag_helpers import record_env_bag, write_foreign_bag
+from test_bag_helpers import record_env_bag, write_foreign_bag, write_json_mcap, write_mistyped_bag
 
 from der_ros.bag.play import play_bag
 from der_ros.bag.reader import BagReader
@@ -156,3 +156,42 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
     assert worst < TIMING_TOLERANCE_S, f"worst timing error {worst * 1000:.1f} ms"
     span = (want[-1][1] - l_first) / 1e9 / rate
     assert span > 1.0  # the bag is long enough for the timing check to mean something
+
+
+def test_a_bag_with_other_types_on_our_topics_or_no_ros_messages_is_not_played(tmp_path: Path) -> None:
+    """Our topic names with other types, or a JSON MCAP: an error naming what was found, nothing published."""
+    from der_ros.bag.export import build_transitions
+    from der_ros.bag.reader import BagError
+
+    write_mistyped_bag(tmp_path / "mistyped", n=5)
+    node = _FakeNode()
+    with pytest.raises(BagError, match=r"/clock has type std_msgs/msg/String where rosgraph_msgs/msg/Clock was "
+                                       r"expected; .*/state has type std_msgs/msg/String where sensor_msgs/msg/PointCloud2"):
+        play_bag(node, BagReader(tmp_path / "mistyped"))
+    assert node.out == []
+    # the export names the types too (it used to say only "no state, reward topic")
+    with pytest.raises(BagError, match=r"no state, reward topic in the bag of the expected type: /reward has type "
+                                       r"std_msgs/msg/String where geometry_msgs/msg/Vector3Stamped was expected"):
+        build_transitions(BagReader(tmp_path / "mistyped"))
+    # a topic the user picks that is not ours still plays... none here; an empty choice is an error, not "0 published"
+    with pytest.raises(BagError, match="nothing to play: none of --topics is in the bag"):
+        play_bag(_FakeNode(), BagReader(tmp_path / "mistyped"), topics=["/elsewhere"])
+
+    write_json_mcap(tmp_path / "telemetry.mcap")
+    with pytest.raises(BagError, match="nothing to play: /telemetry is json-encoded, not ROS 2 CDR"):
+        play_bag(_FakeNode(), BagReader(tmp_path / "telemetry.mcap"))
+
+
+@pytest.mark.parametrize("kind", ["mistyped", "json"])
+def test_der_replay_play_of_a_bag_it_cannot_play_exits_non_zero(ros_domain: int, tmp_path: Path, kind: str) -> None:  # noqa: F811
+    import subprocess
+
+    bag = tmp_path / ("bag" if kind == "mistyped" else "telemetry.mcap")
+    write_mistyped_bag(bag) if kind == "mistyped" else write_json_mcap(bag)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    done = subprocess.run([sys.executable, "-m", "der_ros.cli", "replay", "play", str(bag), "--rate", "100"], env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1, done.stdout + done.stderr
+    want = "where rosgraph_msgs/msg/Clock was expected" if kind == "mistyped" else "json-encoded, not ROS 2 CDR"
+    assert f"der replay play: error: {bag}" in done.stderr and want in done.stderr, done.stderr
+    assert "published" not in done.stdout + done.stderr

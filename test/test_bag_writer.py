@@ -145,6 +145,52 @@ def test_zstd_and_lz4_compression_round_trip(tmp_path: Path) -> None:
             assert [TS.deserialize_cdr(d, c.msgtype).data for c, _, d in r.messages()] == ["x" * 200] * 100
 
 
+def test_a_long_recording_does_not_grow_the_writers_memory(tmp_path: Path) -> None:
+    """Memory per recorded step is flat: every episode event used to stay in memory for the bag's summary (~60 B per
+    decision step, the recorder's creep on a 30k-step run); now the flushed ones live only in episodes.jsonl.
+    (What still grows is one MCAP chunk index per finished chunk, ~0.7 kB, which the file's summary needs: here the
+    payloads are small and flushes rare, so few chunks are finished.)"""
+    import gc
+    import tracemalloc
+
+    w = BagWriter(tmp_path / "long", flush_every_messages=10**9, flush_every_seconds=1e9)
+    topics = ("/state", "/reward", "/lane_change_cmd", "/clock")
+    for topic, msgtype in zip(topics, ("sensor_msgs/msg/PointCloud2", "geometry_msgs/msg/Vector3Stamped",
+                                       "sensor_msgs/msg/Joy", "rosgraph_msgs/msg/Clock")):  # fmt: skip
+        w.add_topic(topic, msgtype)
+    payload = bytes(40)
+
+    def record(steps: range) -> None:
+        for k in steps:  # a decision step: four messages; an episode of 25 steps: two events
+            ts = 10**9 + k * 5 * 10**8
+            for topic in topics:
+                w.write(topic, ts, payload)
+            if k % 25 == 0:
+                w.mark_episode(ts, episode=k // 25, event="start")
+            elif k % 25 == 24:
+                w.mark_episode(ts, episode=k // 25, event="collision", steps=25, ret=-1.5, lane_changes=3)
+            if k % 500 == 499:
+                w.flush()  # episode events go to episodes.jsonl at a flush
+
+    record(range(0, 2000))  # allocations of first use (schemas, buffers) before the measurement
+    tracemalloc.start()
+    try:
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        record(range(2000, 12000))
+        gc.collect()
+        grown = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    w.close()
+    assert grown / 10_000 < 8, f"{grown / 10_000:.1f} B per step"  # was ~60
+    events = read_episode_summary(tmp_path / "long")
+    assert len(events) == 2 * 12000 // 25 and events[-1]["episode"] == 12000 // 25 - 1
+    with open(tmp_path / "long" / "long_0.mcap", "rb") as f:  # the summary record still holds every event
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert json.loads(meta[EPISODES_KEY]["episodes"]) == events
+
+
 def test_episode_marks_and_summary(tmp_path: Path) -> None:
     bag = tmp_path / "ep"
     with BagWriter(bag) as w:

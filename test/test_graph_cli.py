@@ -59,6 +59,12 @@ def wait_until(pred, timeout: float, what: str, proc: subprocess.Popen) -> None:
         time.sleep(0.1)
 
 
+def node_logs(run_dir: Path, tail: int = 6000) -> str:
+    """Every node's log of a run (their tails), for an assertion's message: a failure says why."""
+    logs = sorted((run_dir / "logs").glob("*.log")) if (run_dir / "logs").is_dir() else []
+    return "".join(f"\n===== {p.name} =====\n{p.read_text(errors='replace')[-tail:]}" for p in logs) or "\n(no node logs)"
+
+
 def bag_meta(bag: Path) -> dict:
     return yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
 
@@ -83,11 +89,12 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
         out, _ = proc.communicate(timeout=200)
     finally:
         reap(proc, run_dir)
-    assert proc.returncode == 0, out
-    assert "der graph: finished" in out
+    logs = node_logs(run_dir)
+    assert proc.returncode == 0, out + logs
+    assert "der graph: finished" in out, out + logs
 
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["ok"] and summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
+    assert summary["ok"] and summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}, logs
     assert summary["checkpoint"] and Path(summary["checkpoint"]).is_file()
     assert summary["plots"] and all(Path(p).is_file() for p in summary["plots"])
     params = yaml.safe_load((run_dir / "params.yaml").read_text())
@@ -99,12 +106,12 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert meta["custom_data"][FINALIZED_KEY] == "true"
     c = counts(meta)
     for topic in ("/state", "/reward", "/lane_change_cmd", "/episode", "/clock"):
-        assert c.get(topic, 0) > 0, (topic, c)
+        assert c.get(topic, 0) > 0, f"{topic}: {c}{logs}"
     # the recorder stopped last, so it holds every state the bridge published (bridge's own count)
     bridge_log = (run_dir / "logs" / "bridge_node.log").read_text()
     bridge = json.loads(re.search(r"bridge summary: (\{.*\})", bridge_log).group(1))
-    assert c["/state"] == int(bridge["published_states"]) == c["/reward"]
-    assert c["/lane_change_cmd"] >= int(bridge["commands/accepted"]) >= steps - 1
+    assert c["/state"] == int(bridge["published_states"]) == c["/reward"], logs
+    assert c["/lane_change_cmd"] >= int(bridge["commands/accepted"]) >= steps - 1, logs
     episodes = read_episode_summary(bag)
     ends = [e for e in episodes if e["event"] != "start"]
     assert len(ends) == summary["episodes"] > 0
@@ -144,6 +151,25 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
             msg = TS.deserialize_cdr(data, conn.msgtype)
             stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # step keys t_k, in order
+
+
+def test_a_run_the_agent_never_answered_is_a_failure(ros_domain: int, tmp_path: Path) -> None:
+    """Every node exits 0, yet no step was driven by the agent (here: a command timeout of 1 us, shorter than any
+    answer can take): der graph says so in one line and exits 1 instead of reporting a finished run."""
+    run_dir = tmp_path / "run"
+    proc = der_graph(run_dir, ros_domain, "--steps", "15", "--no-plots", "-p", "bridge_node:command_timeout=0.000001")
+    try:
+        out, _ = proc.communicate(timeout=200)
+    finally:
+        reap(proc, run_dir)
+    logs = node_logs(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}, out + logs
+    assert summary["bridge"]["sim_steps"] == 15 and summary["bridge"]["commands/accepted"] == 0, out + logs
+    assert proc.returncode == 1, out + logs
+    assert not summary["ok"] and "the agent answered none of the bridge's 15 steps" in summary["outcome"]
+    assert "der graph: FAILED: the agent answered none of the bridge's 15 steps" in out
+    assert "der graph: finished" not in out
 
 
 def test_free_run_graph_with_the_real_agent_learns_and_records(ros_domain: int, tmp_path: Path) -> None:

@@ -200,3 +200,117 @@ def test_applied_action_reported_by_the_bridge_replaces_ours():
     L.on_state(2 * S, obs(2))
     assert [o[1] for o in agent.observed] == [0, 2]
     assert L.counters["overridden_actions"] == 1
+
+
+# -- poisoned inputs and time jumps (issue 12) ----------------------------------------------------------
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [
+        (lambda L: L.on_state(0, np.array([np.nan, 0.0])), r"state point\[0\] = nan"),
+        (lambda L: L.on_state(0, np.array([0.0, np.inf])), r"state point\[1\] = inf"),
+        (lambda L: L.on_state(0, np.array([1e300, 0.0])), r"state point\[0\] = 1e\+300, expected a finite number within float32"),
+        (lambda L: L.on_reward(0, float("nan"), False, False), r"reward = nan"),
+        (lambda L: L.on_reward(0, 1e300, False, False), r"reward = 1e\+300"),
+        (lambda L: L.on_reward(0, -1e30, False, False), r"reward = -1e\+30, expected a finite number with \|reward\| <= 1e\+06"),
+    ],
+    ids=["nan-state", "inf-state", "huge-state", "nan-reward", "1e300-reward", "1e30-reward"],
+)
+def test_poisoned_inputs_are_rejected_before_anything_is_buffered(bad, match):
+    agent = FakeAgent()
+    L = OnlineLearner(agent)
+    with pytest.raises(ValueError, match=match):
+        bad(L)
+    assert L.buffered == 0 and L.counters["states"] == 0 and L.counters["rewards"] == 0
+    for k in range(3):  # the stream goes on, and nothing poisoned reached the agent
+        step(L, k, 1.0)
+    assert len(agent.observed) == 2 and all(np.isfinite(o[2]) for o in agent.observed)
+
+
+def test_a_non_finite_observation_from_the_encoder_is_rejected():
+    L = OnlineLearner(FakeAgent(), encode=lambda p: np.where(np.asarray(p) > 1e9, np.inf, p))
+    with pytest.raises(ValueError, match=r"observation\[0\] = inf"):
+        L.on_state(0, np.array([1e10, 0.0]))
+
+
+def test_a_restarted_bridge_is_a_new_stream_and_nothing_wrong_is_stored():
+    """Sim time starts again at 0: the second consecutive step of the new stream is answered; no transition
+    joins the old stream's last state to the new one."""
+    agent = FakeAgent()
+    L = OnlineLearner(agent, step_ns=S)
+    for k in range(10):
+        step(L, k, float(k))
+    old = list(agent.observed)
+    assert len(old) == 9 and L.pending_stamp == 9 * S
+    assert step(L, 0, 0.0) == []  # one step back: could be a stale copy, not followed yet
+    d = step(L, 1, 5.0)  # a second consecutive one: the stream jumped
+    assert [x.stamp_ns for x in d] == [S] and d[0].action is not None and not d[0].stored
+    assert L.counters["stream_jumps"] == 1 and L.counters["abandoned_episodes"] == 1
+    assert agent.observed == old  # the open transition was dropped, not joined across streams
+    for k in range(2, 6):
+        assert step(L, k, float(k))[0].stored
+    assert [o[0] for o in agent.observed[len(old):]] == [1.0, 2.0, 3.0, 4.0]
+    assert L.counters["stale_state"] == 1 and L.counters["stale_reward"] == 1  # step 0 of the new stream
+
+
+@pytest.mark.parametrize("step_ns", [S, None], ids=["step known", "step unknown"])
+def test_one_absurd_future_stamp_cannot_mute_the_agent(step_ns):
+    agent = FakeAgent()
+    L = OnlineLearner(agent, step_ns=step_ns)
+    for k in range(5):
+        step(L, k, 1.0)
+    far = 10**18
+    L.on_reward(far, 7.0, False, False)
+    forged = L.on_state(far, obs(99))
+    answered = []
+    for k in range(5, 25):
+        answered += [d.stamp_ns for d in step(L, k, 1.0) if d.action is not None]
+    if step_ns is not None:  # outside the window: parked, never answered, the stream goes on uninterrupted
+        assert forged == [] and answered == [k * S for k in range(5, 25)]
+        assert L.counters["gaps"] == 0 and L.counters["stream_jumps"] == 0
+        assert all(o[0] != 99.0 and o[3] != 99.0 for o in agent.observed)
+    else:  # it moves the stream once; the second step after it brings the agent back
+        assert [d.stamp_ns for d in forged] == [far]
+        assert answered == [k * S for k in range(6, 25)] and L.counters["stream_jumps"] == 1
+    assert L.counters["stale_state"] + L.counters["stale_reward"] >= 1
+
+
+def test_a_single_replayed_pair_never_moves_the_stream():
+    agent = FakeAgent()
+    L = OnlineLearner(agent, step_ns=S)
+    for k in range(6):
+        step(L, k, 1.0)
+    assert step(L, 2, 9.0) == []  # a copy of an old step (both halves)
+    assert step(L, 6, 1.0)[0].stored  # the stream goes on, no transition lost
+    assert L.counters["stream_jumps"] == 0 and L.counters["stale_state"] == 1
+
+
+def test_parked_and_buffered_halves_are_bounded_first_in_first_out():
+    L = OnlineLearner(FakeAgent(), max_buffered=4, step_ns=S)
+    step(L, 0, 0.0)
+    L.on_state(3 * S, obs(3))  # a legit half waiting for its reward
+    for k in range(10):
+        L.on_state(10**15 + k * S, obs(k))  # a flood of future stamps: parked, never pins the buffer
+    assert L.buffered == 1 and L.counters["evicted"] == 6 and L.counters["stale_state"] == 10
+    assert L.on_reward(3 * S, 1.0, False, False)[0].stamp_ns == 3 * S
+
+
+def test_the_contract_parsers_reject_non_finite_and_out_of_float32_values():
+    """Offline tools (export) decode with the same parsers as the nodes: a poisoned bag cannot produce NaNs."""
+    from types import SimpleNamespace
+
+    from der_ros import contract as ct
+
+    def reward(x):
+        return SimpleNamespace(vector=SimpleNamespace(x=x, y=0.0, z=0.0),
+                               header=SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=0), frame_id=""))
+
+    for x in (float("nan"), float("inf"), 1e300):
+        with pytest.raises(ValueError, match="expected a finite number within float32 range"):
+            ct.parse_reward(reward(x))
+    assert ct.parse_reward(reward(-3e38)).reward == -3e38
+    fields = [SimpleNamespace(name=n, datatype=ct.POINTFIELD_FLOAT64, offset=8 * i, count=1) for i, n in enumerate("ab")]
+    for bad in (np.nan, -np.inf, 1e39):
+        data = np.array([[0.0, 1.0], [2.0, bad]], dtype="<f8").tobytes()
+        cloud = SimpleNamespace(fields=fields, width=2, height=1, point_step=16, data=data, is_bigendian=False)
+        with pytest.raises(ValueError, match="state point 1 field 'b' = .*, expected a finite number"):
+            ct.cloud_to_points(cloud)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from der_ros.agent.config import DQNConfig
+from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.mlp_backward import MLPBackward
 from der_ros.agent.networks import MLPQNetwork, flatten_parameters, make_q_network
 from der_ros.agent.optim import FlatAdam
@@ -40,7 +42,7 @@ from der_ros.configuration import from_dict, to_dict
 from der_ros.replay.config import ReplayConfig
 from der_ros.replay.factory import make_replay
 
-__all__ = ["DQNAgent", "resolve_device", "read_checkpoint", "CHECKPOINT_VERSION"]
+__all__ = ["DQNAgent", "LearnerDiverged", "resolve_device", "read_checkpoint", "diverged_path", "CHECKPOINT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -262,8 +264,13 @@ class DQNAgent:
             self._flat_grad.zero_()
             loss.backward()
             q, td, loss = q.detach(), td.detach(), loss.detach()
+        loss_value = float(loss.item())
+        if not math.isfinite(loss_value):  # checked before the optimizer moves a weight
+            raise self._diverged(f"TD loss = {loss_value}")
         if self.cfg.max_grad_norm > 0.0:
             self._clip_gradient()
+        elif not bool(torch.isfinite(self._flat_grad).all()):
+            raise self._diverged("a non-finite gradient")
         self.optimizer.step()
         self.grad_steps += 1
         if self.grad_steps % self.cfg.target_update_interval == 0:
@@ -273,7 +280,17 @@ class DQNAgent:
         self.replay.update_priorities(batch.indices, td_np)
         n = td_np.shape[0]
         q_sum = float(np.add.reduce(q.cpu().numpy()))  # (np.mean costs ~4x more per call)
-        return float(loss.item()), q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
+        return loss_value, q_sum / n, float(np.add.reduce(np.abs(td_np))) / n
+
+    def _diverged(self, what: str) -> LearnerDiverged:
+        return LearnerDiverged(
+            f"the learner diverged at gradient step {self.grad_steps + 1} (env step {self.steps}): {what}; the step "
+            "was not taken, the weights are the last finite ones"
+        )
+
+    def parameters_finite(self) -> bool:
+        """True when every weight of the online and target networks is finite (one flat buffer each)."""
+        return bool(torch.isfinite(self._flat).all()) and bool(torch.isfinite(self._target_flat).all())
 
     def _clip_gradient(self) -> None:
         """Scale the gradient to global norm ``max_grad_norm`` if it is larger.
@@ -284,8 +301,10 @@ class DQNAgent:
         four tensor operations fewer, and none at all when no clipping is needed.
         """
         norm = np.float32(torch.linalg.vector_norm(self._flat_grad).item())
+        if not math.isfinite(norm):  # a non-finite gradient: the step is refused, no weight moves
+            raise self._diverged(f"gradient norm = {float(norm)}")
         coef = (np.float32(1.0) / (norm + np.float32(1e-6))) * np.float32(self.cfg.max_grad_norm)
-        if not coef >= 1.0:  # (a NaN factor is applied, as torch.clamp would pass it on)
+        if coef < 1.0:
             self._flat_grad.mul_(float(coef))
 
     @torch.no_grad()

@@ -17,10 +17,22 @@ transition or return).
 
 Robustness (all counted in :attr:`OnlineLearner.counters`):
 
+* inputs that could poison the learner never enter it: a state whose points or observation hold
+  a NaN/inf or a value beyond float32's range, and a reward that is not finite or exceeds
+  ``max_abs_reward`` in magnitude (1e300 would be stored as float32 ``inf``; 1e30 is finite but
+  overflows the squared TD loss), raise ``ValueError`` before anything is buffered (the node
+  counts them as malformed messages);
 * a second message of a topic for a stamp already buffered -> ``duplicate_state`` /
   ``duplicate_reward``, ignored;
-* a message for a stamp at or before the last completed step -> ``stale_state`` /
-  ``stale_reward``, ignored (never forms a transition out of order);
+* *the window*: a message stamped at or before the last completed step, or further than
+  ``max_buffered`` steps after it (``step_ns`` known), is outside the current stream ->
+  ``stale_state`` / ``stale_reward``, never joined into it. Such halves are *parked*: two
+  consecutive complete steps outside the window mean the stream itself jumped -- a restarted
+  bridge begins again at sim time 0, and one pair stamped far in the future must not make every
+  later step look stale -- so the learner follows the new stream: ``stream_jumps`` += 1, the open
+  transition and the episode in progress are dropped (``abandoned_episodes``), nothing wrong is
+  stored, and the newer of the two steps is answered. A single re-delivered or forged pair never
+  moves the stream;
 * when step t completes while an earlier step (after the pending one) is still incomplete, that
   earlier step is lost: ``gaps`` += 1, the incomplete halves are dropped and the pending
   (s, a) is discarded instead of being joined to the wrong next state;
@@ -29,7 +41,8 @@ Robustness (all counted in :attr:`OnlineLearner.counters`):
 * the bridge reports in each reward which action it applied (``applied_action``); when that is
   not the action this learner sent (the command missed the bridge's timeout and the default was
   applied), the transition stores the applied one: ``overridden_actions``;
-* at most ``max_buffered`` incomplete stamps are kept; the oldest is evicted (``evicted``).
+* at most ``max_buffered`` incomplete stamps are kept (and as many parked ones); the one that
+  arrived first is evicted (``evicted``), so a flood of fresh stamps cannot pin old ones.
 
 Paused (evaluation mode): act greedily (``explore=False``), store nothing and never learn;
 episode accounting continues (reported with ``eval/`` metric names).
@@ -46,7 +59,24 @@ from typing import Any, Protocol
 
 import numpy as np
 
-__all__ = ["AgentLike", "Decision", "EpisodeSummary", "OnlineLearner"]
+__all__ = ["AgentLike", "Decision", "EpisodeSummary", "OnlineLearner", "FLOAT32_MAX", "check_finite_input"]
+
+#: the replay stores float32: anything larger in magnitude would be stored as inf
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # (= der_ros.contract.FLOAT32_MAX; the core imports no contract)
+
+
+def check_finite_input(what: str, values: np.ndarray) -> None:
+    """ValueError naming ``what`` and the first offending entry if ``values`` hold a NaN, an inf or a
+    value beyond float32's range (what would be stored as inf)."""
+    arr = np.asarray(values)
+    if arr.dtype.kind not in "fc":
+        return
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(arr) | (np.abs(arr) > FLOAT32_MAX)
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = index[0] if len(index) == 1 else index
+        raise ValueError(f"{what}[{where}] = {arr[index].item()!r}, expected a finite number within float32 range")
 
 
 class AgentLike(Protocol):
@@ -100,8 +130,14 @@ class Decision:
 
 @dataclass
 class _Half:
+    #: arrival order of the first message of this stamp (eviction is first in, first out)
+    seq: int
     obs: np.ndarray | None = None
     reward: tuple[float, bool, bool, int | None] | None = None
+
+    @property
+    def complete(self) -> bool:
+        return self.obs is not None and self.reward is not None
 
 
 @dataclass
@@ -118,7 +154,8 @@ class OnlineLearner:
 
     ``encode`` turns a state payload (the decoded points) into the observation the agent sees;
     the identity by default. ``keep_lane_action`` is the action not counted as a lane-change
-    command. ``step_ns`` (optional) is the bridge's step in nanoseconds, to detect whole lost steps.
+    command. ``step_ns`` (optional) is the bridge's step in nanoseconds, to detect whole lost steps
+    and to bound the window ahead of the last step. ``max_abs_reward`` bounds accepted rewards.
     """
 
     def __init__(
@@ -128,16 +165,24 @@ class OnlineLearner:
         max_buffered: int = 64,
         keep_lane_action: int = 0,
         step_ns: int | None = None,
+        max_abs_reward: float = 1e6,
     ) -> None:
         if max_buffered < 1:
             raise ValueError(f"max_buffered = {max_buffered}, expected >= 1")
+        if not 0 < max_abs_reward <= FLOAT32_MAX:
+            raise ValueError(f"max_abs_reward = {max_abs_reward}, expected > 0 and <= {FLOAT32_MAX:g}")
         self.agent = agent
         self.encode = encode if encode is not None else (lambda x: x)
         self.max_buffered = max_buffered
         self.keep_lane_action = keep_lane_action
         self.step_ns = step_ns if step_ns else None
+        self.max_abs_reward = float(max_abs_reward)
+        #: how far ahead of the last completed step a stamp may lie (None: unbounded)
+        self.window_ns = max_buffered * self.step_ns if self.step_ns else None
         self.paused = False
-        self._buf: dict[int, _Half] = {}
+        self._buf: dict[int, _Half] = {}  # stamps in the window of the current stream
+        self._parked: dict[int, _Half] = {}  # stamps outside it: stale copies, or the start of a new stream
+        self._seq = 0
         self._last_completed: int | None = None
         self._pending: tuple[np.ndarray, int, int] | None = None  # (obs_k, a_k, t_k)
         self._episode: _Episode | None = None
@@ -155,6 +200,8 @@ class OnlineLearner:
                 "stale_reward",
                 "gaps",
                 "evicted",
+                "stream_jumps",
+                "abandoned_episodes",
                 "transitions",
                 "actions",
                 "learn_steps",
@@ -164,17 +211,16 @@ class OnlineLearner:
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_state(self, stamp_ns: int, payload: np.ndarray) -> list[Decision]:
-        """A ``state`` message arrived; returns the decisions of every step it completed."""
+        """A ``state`` message arrived; returns the decisions of every step it completed.
+
+        ValueError (nothing buffered) if the payload or its observation is not finite or beyond
+        float32's range.
+        """
+        check_finite_input("state point", np.asarray(payload).reshape(-1))
+        obs = np.asarray(self.encode(payload))
+        check_finite_input("observation", obs.reshape(-1))
         self.counters["states"] += 1
-        if self._is_stale(stamp_ns):
-            self.counters["stale_state"] += 1
-            return []
-        half = self._slot(stamp_ns)
-        if half.obs is not None:
-            self.counters["duplicate_state"] += 1
-            return []
-        half.obs = np.asarray(self.encode(payload))
-        return self._drain()
+        return self._add(int(stamp_ns), "obs", obs)
 
     def on_reward(
         self, stamp_ns: int, reward: float, terminated: bool, truncated: bool, applied_action: int | None = None
@@ -183,18 +229,14 @@ class OnlineLearner:
 
         ``applied_action`` is the action the bridge reports it applied in the step that led to
         this state (None if it does not say); it replaces this learner's own action in the
-        transition when they differ (a command that missed the bridge's timeout).
+        transition when they differ (a command that missed the bridge's timeout). ValueError
+        (nothing buffered) if the reward is not finite or exceeds ``max_abs_reward``.
         """
+        reward = float(reward)
+        if not np.isfinite(reward) or abs(reward) > self.max_abs_reward:
+            raise ValueError(f"reward = {reward!r}, expected a finite number with |reward| <= {self.max_abs_reward:g}")
         self.counters["rewards"] += 1
-        if self._is_stale(stamp_ns):
-            self.counters["stale_reward"] += 1
-            return []
-        half = self._slot(stamp_ns)
-        if half.reward is not None:
-            self.counters["duplicate_reward"] += 1
-            return []
-        half.reward = (float(reward), bool(terminated), bool(truncated), applied_action)
-        return self._drain()
+        return self._add(int(stamp_ns), "reward", (reward, bool(terminated), bool(truncated), applied_action))
 
     def set_paused(self, paused: bool) -> None:
         """Evaluation mode on/off. The current pending step is dropped so that no transition mixes
@@ -232,24 +274,67 @@ class OnlineLearner:
         return out
 
     # -- internals -------------------------------------------------------------------------------
-    def _is_stale(self, stamp_ns: int) -> bool:
-        return self._last_completed is not None and stamp_ns <= self._last_completed
+    def _in_window(self, stamp_ns: int) -> bool:
+        last = self._last_completed
+        if last is None:
+            return True
+        return stamp_ns > last and (self.window_ns is None or stamp_ns - last <= self.window_ns)
 
-    def _slot(self, stamp_ns: int) -> _Half:
-        half = self._buf.get(stamp_ns)
+    def _add(self, stamp_ns: int, kind: str, value: Any) -> list[Decision]:
+        topic = "state" if kind == "obs" else "reward"
+        if not self._in_window(stamp_ns):
+            self.counters[f"stale_{topic}"] += 1
+            half = self._slot(self._parked, stamp_ns)
+            if getattr(half, kind) is None:
+                setattr(half, kind, value)
+            return self._follow_jump()
+        half = self._slot(self._buf, stamp_ns)
+        if getattr(half, kind) is not None:
+            self.counters[f"duplicate_{topic}"] += 1
+            return []
+        setattr(half, kind, value)
+        return self._drain()
+
+    def _slot(self, table: dict[int, _Half], stamp_ns: int) -> _Half:
+        half = table.get(stamp_ns)
         if half is None:
-            if len(self._buf) >= self.max_buffered:
-                oldest = min(self._buf)
-                del self._buf[oldest]
+            if len(table) >= self.max_buffered:
+                first = min(table, key=lambda t: table[t].seq)
+                del table[first]
                 self.counters["evicted"] += 1
-            half = self._buf[stamp_ns] = _Half()
+            self._seq += 1
+            half = table[stamp_ns] = _Half(self._seq)
         return half
+
+    def _follow_jump(self) -> list[Decision]:
+        """Two consecutive complete steps outside the window: the stream jumped; follow it."""
+        done = sorted(t for t, h in self._parked.items() if h.complete)
+        if len(done) < 2:
+            return []
+        t0, t1 = done[-2], done[-1]
+        if self.step_ns is not None and t1 - t0 != self.step_ns:
+            return []
+        start = self._parked[t0].seq  # halves that arrived before the new stream began belong to the old one
+        new = self._parked.pop(t1)
+        keep = {t: h for table in (self._buf, self._parked) for t, h in table.items() if t > t1 and h.seq > start}
+        self._buf = keep
+        self._parked = {}
+        self.counters["stale_state"] -= 1  # the two halves of t1 are used after all
+        self.counters["stale_reward"] -= 1
+        self.counters["stream_jumps"] += 1
+        if self._episode is not None:
+            self.counters["abandoned_episodes"] += 1
+        self._episode = None
+        self._pending = None  # never join the old stream's last state to the new stream
+        self._last_completed = t0
+        assert new.obs is not None and new.reward is not None
+        return [self._complete(t1, new.obs, *new.reward), *self._drain()]
 
     def _drain(self) -> list[Decision]:
         """Process every complete stamp, oldest first; earlier incomplete stamps count as gaps."""
         out: list[Decision] = []
         while True:
-            complete = [t for t, h in self._buf.items() if h.obs is not None and h.reward is not None]
+            complete = [t for t, h in self._buf.items() if h.complete]
             if not complete:
                 return out
             t = min(complete)
@@ -260,6 +345,7 @@ class OnlineLearner:
                 self.counters["gaps"] += 1
                 self._pending = None  # its successor was lost: never join it to a later state
             half = self._buf.pop(t)
+            assert half.obs is not None and half.reward is not None
             out.append(self._complete(t, half.obs, *half.reward))
 
     def _complete(

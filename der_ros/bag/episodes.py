@@ -22,7 +22,7 @@ from __future__ import annotations
 import heapq
 import logging
 from array import array
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -86,6 +86,19 @@ def resolve_topics(reader: BagReader, namespace: str | None = None) -> dict[str,
             continue
         roles[spec.name] = topic
     return roles
+
+
+def mistyped_topics(reader: BagReader, roles: Iterable[str] | None = None) -> dict[str, str]:
+    """topic -> one sentence, for every topic of the bag named like a contract topic but recorded with another type
+    (``/state has type std_msgs/msg/String where sensor_msgs/msg/PointCloud2 was expected``);
+    ``roles`` (contract names, e.g. ``STATE``) limits the check to those."""
+    wanted = None if roles is None else set(roles)
+    found = {}
+    for topic, conn in sorted(reader.topics().items()):
+        spec = topic_by_name(topic)
+        if spec is not None and spec.msgtype != conn.msgtype and (wanted is None or spec.name in wanted):
+            found[topic] = f"{topic} has type {conn.msgtype} where {spec.msgtype} was expected"
+    return found
 
 
 def decode_points(msg: Any, where: Message | None = None) -> np.ndarray:

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from der_ros.bag.episodes import iter_steps, resolve_topics
+from der_ros.bag.episodes import iter_steps, mistyped_topics, resolve_topics
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import flatten_names, from_dict, unflatten_names
 from der_ros.contract import REWARD, STATE
@@ -123,8 +123,10 @@ def build_transitions(reader: BagReader, obs_cfg: Any | None = None, namespace: 
     roles = resolve_topics(reader, namespace)
     missing = [r for r in (STATE, REWARD) if r not in roles]
     if missing:
+        wrong = mistyped_topics(reader, missing)  # our topic names with other types: say so, not just "missing"
         raise BagError(reader.path, None, f"cannot export transitions: no {', '.join(missing)} topic in the bag "
-                       f"(found {', '.join(sorted(reader.topics())) or 'no topics'})")
+                       + (f"of the expected type: {'; '.join(wrong.values())}" if wrong else
+                          f"(found {', '.join(sorted(reader.topics())) or 'no topics'})"))
     obs_l: list[np.ndarray] = []
     next_l: list[np.ndarray] = []
     act_l: list[int] = []

@@ -8,6 +8,9 @@
   ``time.perf_counter``), so inter-message gaps are the recorded ones scaled by ``--rate``.
 * ``/clock`` is republished like any topic when recorded; ``--clock`` synthesises it from the
   log times when the bag has none.
+* What it cannot play is an error, not "published 0 messages": a der_ros topic name recorded
+  with another type (another graph's ``/clock`` as ``std_msgs/String``), or a bag with nothing
+  publishable (a JSON MCAP, types not installed, ``--topics`` not in the bag).
 
 The one module of the bag package that needs rclpy (imported at the top: ``der replay`` loads
 it only when ``play`` runs).
@@ -25,7 +28,8 @@ from builtin_interfaces.msg import Time
 from rclpy.executors import ExternalShutdownException
 from rosgraph_msgs.msg import Clock
 
-from der_ros.bag.reader import BagReader, Connection, Message
+from der_ros.bag.episodes import mistyped_topics
+from der_ros.bag.reader import BagError, BagReader, Connection, Message
 from der_ros.contract import CLOCK, merged_qos, topic_by_name, topic_spec
 from der_ros.contract_ros import message_class, qos_profile
 
@@ -50,17 +54,31 @@ def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = Fa
     if topics is not None:
         for t in set(topics) - set(conns):
             log.warning("topic %s is not in the bag", t)
+    wrong = [w for t, w in mistyped_topics(reader).items() if t in conns]
+    if wrong:  # subscribers of our topics would get another type (or nothing: a type mismatch never matches)
+        raise BagError(reader.path, None, f"{'; '.join(wrong)}: not a der_ros graph's bag on these topics; pick "
+                       "other topics with --topics")
     pubs: dict[str, Any] = {}
+    skipped: list[str] = []
     for topic, cs in conns.items():
+        if cs[0].message_encoding != "cdr":
+            skipped.append(f"{topic} is {cs[0].message_encoding}-encoded, not ROS 2 CDR")
+            log.warning("skipping %s", skipped[-1])
+            continue
         cls = message_class(cs[0].msgtype)
         if cls is None:
-            log.warning("skipping %s: message type %s is not installed", topic, cs[0].msgtype)
+            skipped.append(f"{topic}: message type {cs[0].msgtype} is not installed")
+            log.warning("skipping %s", skipped[-1])
             continue
         profiles = tuple(p for c in cs for p in c.offered_qos)
         spec = topic_by_name(topic)
         q = merged_qos(profiles, spec.qos.depth if spec is not None and spec.msgtype == cs[0].msgtype else 10)
         pubs[topic] = node.create_publisher(cls, topic, qos_profile(q))
         log.info("publishing %s (%s) with %s", topic, cs[0].msgtype, q)
+    if not pubs:
+        why = "; ".join(skipped) if skipped else ("none of --topics is in the bag" if topics is not None
+                                                   else "the bag holds no topic")
+        raise BagError(reader.path, None, f"nothing to play: {why}")
     clock_pub = None
     if clock and CLOCK not in pubs:
         clock_pub = node.create_publisher(Clock, CLOCK, qos_profile(topic_spec(CLOCK).qos))

@@ -238,6 +238,8 @@ class BagWriter:
 
         self._topics: dict[str, _Topic] = {}
         self._files: list[_File] = []
+        #: episode events not yet in episodes.jsonl; the flushed ones live only there (a long run's memory stays
+        #: flat: keeping every event cost ~60 B per decision step)
         self._episodes: list[dict[str, Any]] = []
         self._episodes_flushed = 0
         self._episodes_out: Any = None  # episodes.jsonl, opened at the first event
@@ -283,8 +285,9 @@ class BagWriter:
         assert self._mcap is not None
         self._mcap.add_metadata("rosbag2", {"serialized_metadata": _dump_yaml(
             self._metadata(finalized=True)["rosbag2_bagfile_information"])})
-        if self._episodes:
-            self._mcap.add_metadata(EPISODES_KEY, {"episodes": json.dumps(self._episodes)})
+        events = self.episodes  # read back from episodes.jsonl (flushed before a file is closed): once per file
+        if events:
+            self._mcap.add_metadata(EPISODES_KEY, {"episodes": json.dumps(events)})
         self._mcap.finish()
         self._stream.flush()
         if self.fsync:
@@ -351,8 +354,9 @@ class BagWriter:
 
     @property
     def episodes(self) -> list[dict[str, Any]]:
-        """The episode events seen so far (copies)."""
-        return [dict(e) for e in self._episodes]
+        """The episode events seen so far (copies): those in episodes.jsonl, then those not flushed yet."""
+        flushed = read_episode_summary(self.path) if self._episodes_flushed else []
+        return flushed + [dict(e) for e in self._episodes]
 
     @property
     def files(self) -> list[Path]:
@@ -481,7 +485,7 @@ class BagWriter:
 
     def _flush_episodes(self) -> None:
         """Append the episode events written since the last flush to episodes.jsonl."""
-        new = self._episodes[self._episodes_flushed:]
+        new = self._episodes
         if new:
             if self._episodes_out is None:
                 self._episodes_out = open(self.path / EPISODES_FILE, "a", encoding="utf-8")  # noqa: SIM115
@@ -489,7 +493,8 @@ class BagWriter:
             self._episodes_out.flush()
             if self.fsync:
                 os.fsync(self._episodes_out.fileno())
-        self._episodes_flushed = len(self._episodes)
+        self._episodes_flushed += len(new)
+        self._episodes.clear()
 
     def _rollover(self) -> None:
         self._flush_episodes()

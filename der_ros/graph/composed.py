@@ -50,9 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     log.info("composed graph ready: %s", ", ".join(n.get_name() for n in nodes))
     reason = "finished"
     try:
-        while not bridge.finished and "reason" not in stop:
+        while not bridge.finished and not agent.finished and "reason" not in stop:
             executor.spin_once(timeout_sec=0.1)
-        reason = stop.get("reason", "finished")
+        reason = stop.get("reason", "finished" if not agent.finished else "agent stopped")
     except (KeyboardInterrupt, ExternalShutdownException):
         reason = "interrupted"
     finally:
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return int(getattr(agent, "exit_code", 0))
 
 
 def _drain(executor: Any, seconds: float) -> None:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -30,8 +29,9 @@ import yaml
 from der_ros.graph.evaluation import GraphEvaluator
 from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.progress import Progress
-from der_ros.graph.report import bridge_summary, report, snapshot_from_bag
+from der_ros.graph.report import bridge_summary, report, snapshot_from_bag, unanswered_run
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
+from der_ros.interrupts import interrupts_raise
 from der_ros.nodes.params import build_graph_params, load_params_file
 
 __all__ = ["add_arguments", "run", "node_specs", "default_params_file", "NODES"]
@@ -103,11 +103,9 @@ def node_specs(params_path: Path, env: dict[str, str], composed: bool) -> list[P
     ]
 
 
-def _term_as_interrupt(_signum: int, _frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def run(args: argparse.Namespace) -> int:
+    """One ``der graph`` run. Expects SIGINT and SIGTERM to raise KeyboardInterrupt (``der`` and
+    :func:`main` install that: a background start would otherwise inherit SIGINT ignored)."""
     if args.steps < 1:
         raise SystemExit("der graph: --steps must be >= 1")
     for flag, value in (("--eval-interval", args.eval_interval), ("--eval-episodes", args.eval_episodes),
@@ -119,9 +117,10 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"der graph: run directory {run_dir} exists and is not empty")
     run_dir = run_dir.resolve()
     params_in = args.params if args.params is not None else default_params_file()
-    params = build_graph_params(  # rejects a bad --param before any output
+    params = build_graph_params(  # checks every node's parameters (one line per error) before any output
         load_params_file(params_in), steps=args.steps, scenario=args.scenario, run_dir=run_dir,
-        free_run=args.free_run, replay=args.replay, lam=args.lam, seed=args.seed, overrides=args.param)
+        free_run=args.free_run, replay=args.replay, lam=args.lam, seed=args.seed, overrides=args.param,
+        base_name=str(params_in) if params_in is not None else "node defaults")
     evaluating = bool(args.eval_interval and args.eval_episodes) or bool(args.final_eval_episodes)
     if args.eval_interval and args.eval_episodes:
         params["agent_node"]["ros__parameters"]["policy_every"] = int(args.eval_interval)
@@ -141,7 +140,6 @@ def run(args: argparse.Namespace) -> int:
                                args.final_eval_episodes) if evaluating else None  # fmt: skip
     outcome: RunOutcome | None = None
     t0 = time.monotonic()
-    old_term = signal.signal(signal.SIGTERM, _term_as_interrupt)  # SIGTERM = Ctrl-C: stop in order
     try:
         from der_ros.graph.monitor import GraphMonitor  # lazy: rclpy (``der graph --help`` stays fast)
 
@@ -169,7 +167,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if outcome is None:  # an unexpected error: never leave nodes behind
             sup.stop_all()
-        signal.signal(signal.SIGTERM, old_term)
         if progress is not None:
             progress.close()
         snap = monitor.snapshot() if monitor is not None else None
@@ -180,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.monotonic() - t0
     snap = snapshot_from_bag(run_dir / "bag", snap)
     bridge = bridge_summary(run_dir / "logs")
+    outcome = unanswered_run(outcome, bridge)  # every node exited 0 but the agent answered nothing: a failure
     if snap is not None and "sim_steps" in bridge:
         snap.steps = int(bridge["sim_steps"])  # the bridge's own count of simulated decision steps
     final = None
@@ -206,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="der graph", description=__doc__.splitlines()[0])
     add_arguments(parser)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return run(parser.parse_args(argv))
+    with interrupts_raise():
+        return run(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ before it matched the bridge.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import re
@@ -82,6 +83,24 @@ def bridge_summary(log_dir: Path) -> dict[str, float]:
                 except json.JSONDecodeError:
                     return {}
     return {}
+
+
+def unanswered_run(outcome: RunOutcome, bridge: dict[str, float]) -> RunOutcome:
+    """A run whose nodes all exited 0 but whose agent answered none of the bridge's steps is a failure.
+
+    The bridge then drove every step with its default action on the timeout: the bag holds no
+    command and the checkpoint learned nothing worth keeping, though every process "succeeded"
+    (seen once in CI: 62 states, 0 commands, summary ok). Judged from the bridge's own counters;
+    without a bridge summary (a node died) the outcome is left as it is.
+    """
+    steps = int(bridge.get("sim_steps", 0))
+    if not outcome.ok or steps == 0 or "commands/accepted" not in bridge or bridge["commands/accepted"] > 0:
+        return outcome
+    rejected = {k.split("/", 1)[1]: int(v) for k, v in bridge.items()
+                if k.startswith("commands/") and k not in ("commands/accepted", "commands/opened") and v}
+    return dataclasses.replace(outcome, ok=False, reason=(
+        f"the agent answered none of the bridge's {steps} steps (bridge counters {rejected or 'all 0'}); every step "
+        "ran on the command timeout: see logs/agent_node.log and logs/bridge_node.log"))
 
 
 def snapshot_from_bag(bag: Path, live: ProgressSnapshot | None) -> ProgressSnapshot | None:

@@ -36,11 +36,14 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.clock import Clock as RclClock
+from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 
+from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.online import OnlineLearner
 from der_ros.contract import (
     COMMAND,
@@ -66,6 +69,12 @@ from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observati
 __all__ = ["AgentNode", "parameter_sections", "main"]
 
 _NS = 1_000_000_000
+#: learner counters of what it dropped, reported in the log (at most one line per period)
+_DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted",
+                  "stream_jumps", "abandoned_episodes")
+_DROP_LOG_PERIOD = 5.0
+#: a stream jump (restarted bridge) is reported sooner
+_JUMP_LOG_PERIOD = 1.0
 
 
 def parameter_sections() -> dict[str, Any]:
@@ -98,6 +107,9 @@ class AgentNode(Node):
                     f"checkpoint_in {self.cfg.checkpoint_in}: obs_shape {self.agent.obs_shape}, n_actions "
                     f"{self.agent.n_actions}; expected {tuple(obs_shape)}, {self.cfg.n_actions}"
                 )
+            if not self.agent.parameters_finite():
+                raise ValueError(f"checkpoint_in {self.cfg.checkpoint_in}: its weights are not finite (a diverged "
+                                 "learner); load an earlier checkpoint")
             self.get_logger().info(
                 f"loaded {self.cfg.checkpoint_in} (step {self.agent.steps}); its agent/replay configs replace the "
                 "agent.* and replay.* parameters"
@@ -111,10 +123,15 @@ class AgentNode(Node):
             self._warm_up(DQNAgent, tuple(obs_shape))
         step_ns = int(round(self.cfg.step_seconds * _NS)) or None
         self.learner = OnlineLearner(self.agent, encode=self._encode, max_buffered=self.cfg.max_buffered,
-                                     step_ns=step_ns)
+                                     step_ns=step_ns, max_abs_reward=self.cfg.max_abs_reward)
         self.learner.set_paused(self.cfg.evaluate)
         self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"
         self.bad_messages: dict[str, int] = {STATE: 0, REWARD: 0, EPISODE: 0}
+        #: set when the learner diverged: nothing overwrites checkpoint_out any more; the node stops, exit 1
+        self.diverged = False
+        self.exit_code = 0
+        self._drops_reported = {k: 0 for k in _DROP_COUNTERS}
+        self._drops_logged_at = -float("inf")
         self._learn_calls = 0
         self._last_saved_step = self.agent.steps
         self._next_policy_step = self.agent.steps  # the first snapshot: the policy it starts with
@@ -126,6 +143,8 @@ class AgentNode(Node):
         self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE))
         self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD))
         self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))
+        # what is still unreported is logged even when no message follows (steady clock: sim time may stop)
+        self.create_timer(_JUMP_LOG_PERIOD, self._report_drops, clock=RclClock(clock_type=ClockType.STEADY_TIME))
         self.create_service(Trigger, "agent/save_checkpoint", self._srv_save)
         self.create_service(SetBool, "agent/set_paused", self._srv_pause)
         self.get_logger().info(
@@ -163,7 +182,7 @@ class AgentNode(Node):
                                   throttle_duration_sec=1.0)
 
     def _on_state(self, msg: PointCloud2) -> None:
-        try:
+        try:  # malformed, non-finite or beyond float32: rejected and counted, never stored
             points = cloud_to_points(msg, POINT_FIELDS)
             decisions = self.learner.on_state(header_ns(msg), points)
         except ValueError as exc:
@@ -176,12 +195,33 @@ class AgentNode(Node):
             r = parse_reward(msg)
             if r.applied_action is not None and not 0 <= r.applied_action < self.cfg.n_actions:
                 raise ValueError(f"reward applied_action = {r.applied_action}, expected 0..{self.cfg.n_actions - 1}")
+            decisions = self.learner.on_reward(r.stamp_ns, r.reward, r.terminated, r.truncated, r.applied_action)
         except ValueError as exc:
             self._reject(REWARD, exc)
             return
-        self._handle(self.learner.on_reward(r.stamp_ns, r.reward, r.terminated, r.truncated, r.applied_action))
+        self._handle(decisions)
+
+    def _report_drops(self) -> None:
+        """What the learner dropped (stale, duplicate, evicted, lost steps, stream jumps): one log line at
+        most every ``_DROP_LOG_PERIOD`` seconds, with the increments since the last line."""
+        counters = self.learner.counters
+        if all(counters[k] == self._drops_reported[k] for k in _DROP_COUNTERS):
+            return
+        now = time.monotonic()
+        jumped = counters["stream_jumps"] != self._drops_reported["stream_jumps"]
+        if now - self._drops_logged_at < (_JUMP_LOG_PERIOD if jumped else _DROP_LOG_PERIOD):
+            return
+        new = {k: counters[k] - self._drops_reported[k] for k in _DROP_COUNTERS if counters[k] != self._drops_reported[k]}
+        self._drops_reported = {k: counters[k] for k in _DROP_COUNTERS}
+        self._drops_logged_at = now
+        why = " (the stream jumped: a restarted bridge or a stamp far off; the open transition was dropped)" \
+            if jumped else ""
+        self.get_logger().warning(
+            "dropped since the last report: " + ", ".join(f"{k} +{v}" for k, v in new.items()) + why
+            + f"; totals {dict(self._drops_reported)}")
 
     def _handle(self, decisions: list[Any]) -> None:
+        self._report_drops()
         if not decisions:
             return
         for d in decisions:  # answer first: the bridge steps while we learn
@@ -203,7 +243,13 @@ class AgentNode(Node):
             self._next_policy_step = (steps // every + 1) * every
 
     def _learn(self) -> None:
-        metrics = self.learner.learn()
+        if self.diverged:
+            return
+        try:
+            metrics = self.learner.learn()
+        except LearnerDiverged as exc:
+            self._on_diverged(exc)
+            return
         if metrics:
             self._last_metrics = metrics
             self._learn_calls += 1
@@ -246,14 +292,41 @@ class AgentNode(Node):
             self.save()
 
     def save(self) -> Path | None:
-        """Write ``checkpoint_out`` (atomic); None when no path is set."""
+        """Write ``checkpoint_out`` (atomic); None when no path is set or the learner diverged.
+
+        A diverged learner (or non-finite weights, however they came) never overwrites
+        ``checkpoint_out``: the last good checkpoint stays, the state goes beside it
+        (:func:`der_ros.agent.dqn.diverged_path`) once.
+        """
         if not self.cfg.checkpoint_out:
+            return None
+        if not self.diverged and not self.agent.parameters_finite():
+            self._on_diverged(LearnerDiverged(f"non-finite weights at env step {self.agent.steps}"))
+        if self.diverged:
             return None
         t0 = time.perf_counter()
         path = self.agent.save(self.cfg.checkpoint_out, extra={"online": self.learner.stats()})
         self._last_saved_step = self.agent.steps
         self.get_logger().info(f"saved {path} at step {self.agent.steps} ({time.perf_counter() - t0:.2f}s)")
         return path
+
+    def _on_diverged(self, exc: Exception) -> None:
+        """Stop learning and the node (exit 1), keep the last good checkpoint, say so in one line."""
+        self.diverged = True
+        self.exit_code = 1
+        self.finished = True
+        out = self.cfg.checkpoint_out
+        if not out:
+            self.get_logger().error(f"{exc}; no checkpoint_out, nothing saved; stopping")
+            return
+        kept = f"kept the last good checkpoint {out} (step {self._last_saved_step})" if Path(out).is_file() else \
+            f"no good checkpoint was written yet ({out} not created)"
+        try:
+            bad = self.agent.save(diverged_path(out), extra={"online": self.learner.stats(), "diverged": str(exc)})
+            where = f"the state at divergence is in {bad}"
+        except OSError as err:
+            where = f"the state at divergence could not be written ({err})"
+        self.get_logger().error(f"{exc}; {kept}; {where}; stopping")
 
     def _srv_save(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:

@@ -48,6 +48,7 @@ from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 from visualization_msgs.msg import MarkerArray
@@ -68,6 +69,7 @@ from der_ros.contract import (
     SCENE_ROAD,
     SCENE_VEHICLES,
     STATE,
+    cdr_command_sender,
     episode_values,
     parse_command,
 )
@@ -76,6 +78,7 @@ from der_ros.nodes import msg_conversions as mc
 from der_ros.nodes import node_configs
 from der_ros.nodes.node_configs import BridgeNodeConfig
 from der_ros.nodes.params import ConfigParameters
+from der_ros.nodes.queue_drain import take_queued
 from der_ros.nodes.spin import run_node
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.lockstep import CommandGate, Verdict
@@ -84,6 +87,8 @@ from sumo_bridge.observation import field_index
 __all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
 _NS = 1_000_000_000
+#: consecutive timeouts at the start, no command accepted yet, after which the bridge names who publishes and listens
+_SILENT_START = 3
 
 
 class LatencyStats:
@@ -134,8 +139,12 @@ class BridgeNode(Node):
         self.pub_odom = self.create_publisher(Odometry, ODOM, topic_qos(ODOM))
         self.pub_episode = self.create_publisher(DiagnosticArray, EPISODE, topic_qos(EPISODE))
         self.pub_diag = self.create_publisher(DiagnosticArray, BRIDGE_DIAGNOSTICS, topic_qos(BRIDGE_DIAGNOSTICS))
+        # Raw CDR bytes, a deep queue drained in the callback, commands of other senders dropped before they are
+        # decoded: a command flood cannot push the agent's answer out of the queue (nodes/queue_drain.py).
         # Two-argument callback: rclpy passes the MessageInfo (timestamps, sequence numbers).
-        self.create_subscription(Joy, COMMAND, self._on_command, topic_qos(COMMAND))
+        self._cmd_sub = self.create_subscription(Joy, COMMAND, self._on_command,
+                                                 topic_qos(COMMAND, depth=self.cfg.command_queue_depth), raw=True)
+        self._rejects_logged_at = -float("inf")
         self.pub_vehicles: Publisher | None = None
         if self.cfg.markers:
             self._start_scene()
@@ -276,18 +285,30 @@ class BridgeNode(Node):
         self.finished = True
 
     # -- commands --------------------------------------------------------------------------------
-    def _on_command(self, msg: Joy, info: dict[str, Any]) -> None:
+    def _on_command(self, data: bytes, info: dict[str, Any]) -> None:
         del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
+        self._judge_command(data)
+        for queued in take_queued(self._cmd_sub, self.cfg.command_queue_depth):  # the rest of the queue, now
+            self._judge_command(queued)
+
+    def _judge_command(self, data: bytes) -> None:
         if self.finished:
+            return
+        sender = cdr_command_sender(data)
+        early = self.gate.screen(sender)  # not the locked sender: dropped undecoded (a few us, not ~50)
+        if early is not None:
+            self._log_reject(early, f"sender={sender!r}")
+            return
+        try:
+            msg = deserialize_message(data, Joy)
+        except Exception as exc:  # noqa: BLE001 - bytes rclpy cannot decode are a malformed command
+            self.gate.screen(None)
+            self._log_reject(Verdict.MALFORMED, f"undecodable ({type(exc).__name__})")
             return
         stamp, buttons, axes, sender = parse_command(msg)
         verdict, action = self.gate.offer(stamp, buttons, axes, sender)
         if verdict is not Verdict.ACCEPTED:
-            self.get_logger().warning(
-                f"rejected lane_change_cmd ({verdict.value}): stamp={stamp} buttons={buttons} axes={axes} "
-                f"sender={sender!r}; counters={self.gate.stats()}",
-                throttle_duration_sec=1.0,
-            )
+            self._log_reject(verdict, f"stamp={stamp} buttons={buttons} axes={axes} sender={sender!r}")
             return
         sent = self._sent_at.pop(stamp, None)
         if sent is not None:
@@ -295,6 +316,13 @@ class BridgeNode(Node):
         if self.cfg.mode == "lockstep":
             self._timeout_timer.cancel()
             self._step(action)
+
+    def _log_reject(self, verdict: Verdict, what: str) -> None:
+        """Every rejection is counted by the gate; the log gets one line a second at most, built only then."""
+        now = time.monotonic()
+        if now - self._rejects_logged_at >= 1.0:
+            self._rejects_logged_at = now
+            self.get_logger().warning(f"rejected lane_change_cmd ({verdict.value}): {what}; counters={self.gate.stats()}")
 
     def _on_timeout(self) -> None:
         self._timeout_timer.cancel()
@@ -307,6 +335,14 @@ class BridgeNode(Node):
             f"no command for step stamped {key} within {self.cfg.command_timeout}s: default action {action}",
             throttle_duration_sec=1.0,
         )
+        if self.gate.counters["timeouts"] == _SILENT_START and not self.gate.counters["accepted"]:
+            # the agent has answered nothing yet: name who publishes commands and who listens (diagnosis of a
+            # deaf or absent agent; der graph fails a run the agent never answered)
+            pubs = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in self.get_publishers_info_by_topic(COMMAND)]
+            subs = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in self.get_subscriptions_info_by_topic(STATE)]
+            self.get_logger().warning(
+                f"no answer to any of the first {_SILENT_START} states: {COMMAND} publishers {pubs}, {STATE} "
+                f"subscribers {subs}, command counters {self.gate.stats()}")
         self._step(action)
 
     def _on_tick(self) -> None:

@@ -48,6 +48,10 @@ class BridgeNodeConfig:
         True, "publish the scene for RViz / Foxglove / der replay render: every vehicle on scene/vehicles each step "
         "and the road once on scene/road (visualization_msgs/MarkerArray); costs SUMO position subscriptions and "
         "the encoding, see bench/graph.py")
+    command_queue_depth: int = param(
+        1000, "KEEP_LAST depth of the lane_change_cmd subscription; each command callback also takes every command "
+        "already queued (up to this many), so a flood of stray commands is judged and rejected before it can push "
+        "the agent's answer out of the queue", low=1, high=100_000)
 
 
 @dataclass
@@ -71,6 +75,10 @@ class AgentNodeConfig:
     step_seconds: float = param(
         0.0, "the bridge's step in seconds, to detect steps lost on every topic (0 = do not check)", low=0.0)
     max_buffered: int = param(64, "incomplete state/reward stamps kept while waiting for the other half", low=1)
+    max_abs_reward: float = param(
+        1e6, "rewards larger than this in magnitude are rejected as malformed: no scenario gives them (SUMO's are "
+        "+-100 plus a log speed), and they would overflow the squared TD loss", low=0.0, low_inclusive=False,
+        high=3.0e38)
     torch_threads: int = param(1, "torch intra-op threads (1 keeps the node from competing with SUMO)", low=1)
     warm_up: bool = param(
         True, "before joining the graph, run act/observe/learn on a scratch agent so that lazy set-up (the replay's "

@@ -37,6 +37,7 @@ from __future__ import annotations
 import array
 import copy
 import math
+import sys
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import is_dataclass
@@ -56,7 +57,14 @@ from der_ros.configuration import (
     unflatten_names,
 )
 from der_ros.contract import STATE, default_record_topics
-from der_ros.nodes.node_configs import NODE_SECTIONS, parameter_sections
+from der_ros.nodes.node_configs import NODE_SECTIONS
+from der_ros.nodes.param_check import (
+    argv_origin,
+    check_node_parameters,
+    check_parameter,
+    parameter_error,
+    section_error,
+)
 
 __all__ = [
     "ConfigParameters",
@@ -66,7 +74,6 @@ __all__ = [
     "params_file_section",
     "load_params_file",
     "parse_overrides",
-    "typed_value",
     "build_graph_params",
 ]
 
@@ -189,12 +196,22 @@ class ConfigParameters:
         on_change: ChangeCallback | None = None,
     ) -> None:
 
+        from rclpy.exceptions import ParameterException
+
         self._node = node
         self._types = {prefix: type(obj) for prefix, obj in sections.items()}
         self._specs: dict[str, dict[str, FieldSpec]] = {}
         self._owner: dict[str, str] = {}
         self._on_change = on_change
         mutable = set(mutable)
+        node_name = node.get_name()
+        all_specs = {name: spec for prefix, obj in sections.items() for name, spec in flat_specs(obj, prefix).items()}
+        # The values the node is started with (params file, -p) are checked before rclpy sees them, so a
+        # bad one is the one line of der_ros.nodes.param_check instead of an rclpy traceback.
+        overrides = {name: _python_value(p.value) for name, p in getattr(node, "_parameter_overrides", {}).items()}
+        for name, value in overrides.items():
+            if name in all_specs:
+                check_parameter(node_name, name, value, argv_origin(name, sys.argv), all_specs)
         for prefix, obj in sections.items():
             specs = flat_specs(obj, prefix)
             self._specs[prefix] = specs
@@ -205,16 +222,25 @@ class ConfigParameters:
                 self._owner[name] = prefix
                 desc = _descriptor(name, spec, read_only=name not in mutable, default=values[name])
                 value = _ros_value(values[name])
-                if value is None:
-                    node.declare_parameter(name, None, desc)  # dynamic_typing is set for nullable fields
-                else:
-                    node.declare_parameter(name, value, desc)
+                try:
+                    node.declare_parameter(name, value, desc)  # None: dynamic_typing is set for nullable fields
+                except ParameterException as exc:  # what our check cannot see (e.g. 1 for a double parameter)
+                    given = overrides.get(name, value)
+                    if spec.type is float and isinstance(given, int) and not isinstance(given, bool):
+                        reason = f"expected a floating-point number (a ROS double parameter: write {float(given)!r})"
+                    else:
+                        reason = " ".join(str(exc).split()) or type(exc).__name__
+                    raise parameter_error(argv_origin(name, sys.argv), node_name, name, given, reason) from None
         missing = mutable.difference(self._owner)
         if missing:
             raise ValueError(f"mutable parameters {sorted(missing)} are not fields of any section")
         self._current: dict[str, Any] = {}
         for prefix in sections:
-            self._current[prefix] = self._build(prefix, {}, source=f"node {node.get_name()} parameters")
+            try:
+                self._current[prefix] = self._build(prefix, {}, source="")
+            except ConfigError as exc:  # a cross-field rule
+                given = {n: overrides[n] for n in self._specs[prefix] if n in overrides}
+                raise section_error(node_name, prefix, exc, lambda n: argv_origin(n, sys.argv), given) from None
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._applied)
 
@@ -279,26 +305,11 @@ def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
         name, eq, value = rest.partition("=")
         if not sep or not eq or node not in NODE_SECTIONS or not name:
             raise ConfigError(f"-p {item!r}: expected NODE:NAME=VALUE with NODE in {', '.join(NODE_SECTIONS)}")
-        out.setdefault(node, {})[name] = yaml.safe_load(value)
+        try:
+            out.setdefault(node, {})[name] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            out.setdefault(node, {})[name] = value  # not YAML: the text itself (the check names the type)
     return out
-
-
-def typed_value(node: str, name: str, value: Any) -> Any:
-    """``value`` with the declared type of ``node``'s parameter ``name`` (``20`` -> ``20.0`` for a float).
-
-    ROS parameters are statically typed: a float parameter given as an integer would make the
-    node refuse its params file at start-up.
-    """
-    if name == "use_sim_time":  # declared by rclpy itself
-        return bool(value)
-    specs = {k: v for prefix, obj in parameter_sections(node).items() for k, v in flat_specs(obj, prefix).items()}
-    if name not in specs:
-        raise ConfigError(f"-p {node}:{name}: {node} has no parameter {name!r}; known: {', '.join(sorted(specs))}")
-    if specs[name].type is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if specs[name].type is str and not isinstance(value, str):
-        return str(value)
-    return value
 
 
 def build_graph_params(
@@ -312,6 +323,7 @@ def build_graph_params(
     lam: float | None = None,
     seed: int | None = None,
     overrides: Iterable[str] = (),
+    base_name: str = "params file",
 ) -> dict[str, Any]:
     """The params file of one ``der graph`` run: ``base`` plus the run's choices plus ``-p`` overrides.
 
@@ -319,37 +331,46 @@ def build_graph_params(
     the file nested it or not. Outputs go to ``run_dir`` (``agent.pt``, ``bag``). When the recorder
     records ``state``, the bridge waits for two subscribers (agent and recorder) before its first
     step, unless told otherwise: a short fast run could otherwise finish before the recorder matched.
+
+    Every value of the three nodes is then checked as the node will check it
+    (:func:`der_ros.nodes.param_check.check_node_parameters`) and typed for ROS; a bad one is a
+    :class:`ConfigError` of one line naming where it came from (``base_name``, ``-p``, ``--lam``...).
     """
     params = copy.deepcopy(dict(base))
+    origins: dict[str, dict[str, str]] = {}
     for node in NODE_SECTIONS:
         section = params.setdefault(node, {})
         if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
-            raise ConfigError(f"params section {node!r} is not a mapping with ros__parameters")
+            raise ConfigError(f"{base_name}: section {node!r} is not a mapping with ros__parameters")
         section["ros__parameters"] = flatten_names(section.get("ros__parameters") or {})
+        origins[node] = dict.fromkeys(section["ros__parameters"], base_name)
 
-    def put(node: str, name: str, value: Any) -> None:
+    def put(node: str, name: str, value: Any, origin: str) -> None:
         params[node]["ros__parameters"][name] = value
+        origins[node][name] = origin
 
-    put("bridge_node", "max_steps", int(steps))
-    put("bridge_node", "scenario.network", scenario)
+    put("bridge_node", "max_steps", int(steps), "--steps")
+    put("bridge_node", "scenario.network", scenario, "--scenario")
     if free_run:
-        put("bridge_node", "mode", "free_run")
+        put("bridge_node", "mode", "free_run", "--free-run")
     if replay is not None:
-        put("agent_node", "replay.kind", replay)
+        put("agent_node", "replay.kind", replay, "--replay")
     if lam is not None:
-        put("agent_node", "replay.lam", float(lam))
+        put("agent_node", "replay.lam", lam, "--lam")
     if seed is not None:
-        put("agent_node", "seed", int(seed))
-        put("bridge_node", "scenario.seed", int(seed))
-    put("agent_node", "checkpoint_out", str(run_dir / "agent.pt"))
-    put("recorder_node", "output", str(run_dir / "bag"))
+        put("agent_node", "seed", seed, "--seed")
+        put("bridge_node", "scenario.seed", seed, "--seed")
+    put("agent_node", "checkpoint_out", str(run_dir / "agent.pt"), "--run-dir")
+    put("recorder_node", "output", str(run_dir / "bag"), "--run-dir")
     extra = parse_overrides(overrides)
     for node, values in extra.items():
         for name, value in values.items():
-            put(node, name, typed_value(node, name, value))
+            put(node, name, value, "-p")
     rec = params["recorder_node"]["ros__parameters"]
     records_state = rec.get("all_topics") or STATE in [
-        str(t).lstrip("/") for t in rec.get("topics", default_record_topics())]
+        str(t).lstrip("/") for t in rec.get("topics", default_record_topics()) if isinstance(t, str)]
     if records_state and "min_subscribers" not in extra.get("bridge_node", {}):
-        put("bridge_node", "min_subscribers", 2)
+        put("bridge_node", "min_subscribers", 2, "der graph")
+    for node in NODE_SECTIONS:  # every value as the node will check it: one line, before any process starts
+        params[node]["ros__parameters"] = check_node_parameters(node, params[node]["ros__parameters"], origins[node])
     return params

@@ -52,7 +52,8 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
     """Create the node with ``factory`` (after ``rclpy.init``) and spin it on a single-threaded executor.
 
     Returns the process exit code: 0 after a signal or when the node set ``finished``, 1 if
-    the node could not be created (bad parameters: the error is logged, not a traceback).
+    the node could not be created (bad parameters: the error is logged, not a traceback), or the
+    node's own ``exit_code`` when it sets one (the agent after its learner diverged).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -63,7 +64,7 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
     stop = install_stop_handlers()
     try:
         node = factory()
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, ValueError, OSError) as exc:  # bad parameters, an unreadable checkpoint_in...
         rclpy.logging.get_logger("der_ros").error(f"could not start: {exc}")
         rclpy.try_shutdown()
         return 1
@@ -89,7 +90,7 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
             executor.shutdown(timeout_sec=1.0)
             node.destroy_node()
             rclpy.try_shutdown()
-    return 0
+    return int(getattr(node, "exit_code", 0))
 
 
 class BackgroundNode:

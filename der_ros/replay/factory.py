@@ -22,9 +22,10 @@ from der_ros.replay.base import ReplayBuffer
 from der_ros.replay.config import ReplayConfig
 from der_ros.replay.double_replay import DoubleReplay
 from der_ros.replay.prioritized import PrioritizedReplay
+from der_ros.replay.storage import check_memory, describe, storage_bytes
 from der_ros.replay.uniform import UniformReplay
 
-__all__ = ["REPLAY_KINDS", "make_replay", "load_replay", "resolve_h2"]
+__all__ = ["REPLAY_KINDS", "make_replay", "load_replay", "resolve_h2", "check_replay_memory"]
 
 #: ``ReplayConfig.kind`` (also the ``kind`` saved with a buffer's state) -> class
 REPLAY_KINDS: dict[str, type[ReplayBuffer]] = {cls.kind: cls for cls in (UniformReplay, PrioritizedReplay, DoubleReplay)}
@@ -35,6 +36,24 @@ def resolve_h2(cfg: ReplayConfig, batch_size: int) -> tuple[int, int]:
     n2 = cfg.h2_capacity if cfg.h2_capacity is not None else 100 * batch_size
     k = cfg.h2_min_size if cfg.h2_min_size is not None else batch_size
     return int(n2), int(k)
+
+
+def check_replay_memory(
+    cfg: ReplayConfig,
+    obs_shape: Sequence[int],
+    obs_dtype: np.dtype | str | type,
+    batch_size: int,
+    available_bytes: int | None = None,
+) -> None:
+    """Raise :class:`~der_ros.replay.storage.ReplayMemoryError` if the buffer ``cfg`` describes would not
+    fit, without allocating it (``der graph`` checks the agent's replay before any process starts)."""
+    needed = storage_bytes(cfg.capacity, obs_shape, obs_dtype)
+    what = describe(cfg.capacity, obs_shape, obs_dtype)
+    if cfg.kind == "der":
+        n2, _k = resolve_h2(cfg, batch_size)
+        needed += storage_bytes(n2, obs_shape, obs_dtype)
+        what = f"H1 {what} + H2 (h2_capacity={n2})"
+    check_memory(needed, what, available_bytes)
 
 
 def make_replay(

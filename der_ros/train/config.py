@@ -156,6 +156,11 @@ def experiment_from_dict(data: dict[str, Any] | None, source: str = "config") ->
         if not isinstance(section, dict):
             raise ConfigError(f"{source}: section {name!r} = {section!r}, expected a mapping")
         parts[name] = from_dict(cls, section, source=f"{source} [{name}]")
+    agent, replay = parts["agent"], parts["replay"]
+    if agent.batch_size > replay.capacity:  # the learner could never draw a batch
+        raise ConfigError(f"{source} [agent]: batch_size = {agent.batch_size}, expected <= replay.capacity "
+                          f"({replay.capacity})", key="agent.batch_size", value=agent.batch_size,
+                          reason=f"expected <= replay.capacity ({replay.capacity})")
     return ExperimentConfig(**parts)
 
 

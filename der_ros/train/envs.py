@@ -24,6 +24,7 @@ import gymnasium as gym
 import numpy as np
 
 import sumo_bridge  # noqa: F401  (registers the der_ros/* SUMO ids with gymnasium)
+from der_ros.configuration import ConfigError
 
 __all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife"]
 
@@ -152,20 +153,32 @@ def make_env(
 
 
 def make_env_from_config(cfg: Any, seed: int) -> gym.Env:
-    """:func:`make_env` from an :class:`der_ros.train.config.EnvConfig`."""
-    return make_env(
-        cfg.id,
-        seed,
-        max_episode_steps=cfg.max_episode_steps,
-        frame_skip=cfg.frame_skip,
-        frame_stack=cfg.frame_stack,
-        screen_size=cfg.screen_size,
-        noop_max=cfg.noop_max,
-        terminal_on_life_loss=cfg.terminal_on_life_loss,
-        clip_rewards=cfg.clip_rewards,
-        sticky_action_prob=cfg.sticky_action_prob,
-        **dict(cfg.kwargs),
-    )
+    """:func:`make_env` from an :class:`der_ros.train.config.EnvConfig`.
+
+    An id gymnasium does not know, or keyword arguments its constructor refuses, are a
+    :class:`ConfigError` naming ``env.id`` / ``env.kwargs`` (not a gymnasium traceback), so
+    ``der train`` can fail before it writes anything.
+    """
+    try:
+        return make_env(
+            cfg.id,
+            seed,
+            max_episode_steps=cfg.max_episode_steps,
+            frame_skip=cfg.frame_skip,
+            frame_stack=cfg.frame_stack,
+            screen_size=cfg.screen_size,
+            noop_max=cfg.noop_max,
+            terminal_on_life_loss=cfg.terminal_on_life_loss,
+            clip_rewards=cfg.clip_rewards,
+            sticky_action_prob=cfg.sticky_action_prob,
+            **dict(cfg.kwargs),
+        )
+    except gym.error.Error as exc:  # NameNotFound, NamespaceNotFound, VersionNotFound, ...
+        reason = " ".join(str(exc).split())
+        raise ConfigError(f"env.id = {cfg.id!r}: {reason}", key="env.id", value=cfg.id, reason=reason) from None
+    except TypeError as exc:  # gymnasium.make passes kwargs to the constructor
+        raise ConfigError(f"env.kwargs = {dict(cfg.kwargs)!r}: {exc}", key="env.kwargs", value=dict(cfg.kwargs),
+                          reason=str(exc)) from None
 
 
 def obs_spec(env: gym.Env) -> tuple[tuple[int, ...], np.dtype]:

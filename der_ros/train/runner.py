@@ -38,7 +38,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from der_ros.agent.dqn import DQNAgent, read_checkpoint
+from der_ros.agent.dqn import DQNAgent, resolve_device
 from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.envs import make_env_from_config, obs_spec
 from der_ros.train.evaluation import (
@@ -54,6 +54,7 @@ from der_ros.train.evaluation import (
     write_eval_row,
 )
 from der_ros.train.metrics import MeanAccumulator, MetricsWriter, drop_metric_rows
+from der_ros.train.resume import load_resume_point
 from der_ros.train.scores import max_moving_average
 
 __all__ = ["RunSummary", "train", "default_run_dir", "replay_label"]
@@ -98,28 +99,31 @@ def default_run_dir(cfg: ExperimentConfig) -> Path:
 
 
 class _StopFlag:
-    """SIGINT -> stop after the current step (second Ctrl-C raises KeyboardInterrupt at once)."""
+    """SIGINT or SIGTERM -> stop after the current step and write a checkpoint (a second one raises
+    KeyboardInterrupt at once). Installed explicitly for both signals: a run started in the
+    background inherits SIGINT ignored, and SIGTERM is how supervisors and ``kill`` stop a job."""
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self) -> None:
         self.stop = False
-        self._previous: Any = None
-        self._installed = False
+        self._previous: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: Any) -> None:
         if self.stop:
             raise KeyboardInterrupt
         self.stop = True
-        log.warning("interrupt: finishing this step, writing a checkpoint (Ctrl-C again to abort)")
+        log.warning("%s: finishing this step, writing a checkpoint (Ctrl-C again to abort)",
+                    signal.Signals(signum).name)
 
     def __enter__(self) -> _StopFlag:
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handler)
-            self._installed = True
+            self._previous = {sig: signal.signal(sig, self._handler) for sig in self._SIGNALS}
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        if self._installed:
-            signal.signal(signal.SIGINT, self._previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
 
 
 def _try_pickle_env(env: gym.Env) -> bytes | None:
@@ -216,14 +220,20 @@ def _train(
     check_training_seed(t_cfg.seed)
     torch.set_num_threads(t_cfg.threads)
     run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
-    run_path.mkdir(parents=True, exist_ok=True)
-    save_experiment_config(cfg, run_path / "config.yaml")
-
+    # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
+    # runs before the run directory is created: a failed start writes nothing.
     env = make_env_from_config(cfg.env, t_cfg.seed)
-    cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it)
+    cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
     obs_shape, obs_dtype = obs_spec(env)
     n_actions = int(env.action_space.n)
+    point = load_resume_point(resume, obs_shape, n_actions, resolve_device(t_cfg.device)) if resume else None
+    if point is not None:
+        cfg = point.config(cfg)  # a node checkpoint brings its own agent and replay settings
     agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
+    if point is not None:
+        agent.load_state_dict(point.agent_state)
+    run_path.mkdir(parents=True, exist_ok=True)
+    save_experiment_config(cfg, run_path / "config.yaml")
     acc = MeanAccumulator()
 
     episode = 0
@@ -232,24 +242,26 @@ def _train(
     wall_offset = 0.0
     obs: np.ndarray
     resume_step: int | None = None
-    if resume is not None:
-        ckpt = read_checkpoint(resume, agent.device)
-        agent.load_state_dict(ckpt["agent"])
-        runner = ckpt["extra"]["runner"]
+    if point is not None and point.runner is not None:
+        runner = point.runner
         resume_step = agent.steps
         episode = int(runner["episode"])
         returns = [float(x) for x in runner["returns"]]
         last_return = returns[-1] if returns else None
         wall_offset = float(runner["wall_time"])
         acc.load_state_dict(runner["accumulator"])
-        env_bytes = ckpt["extra"].get("env")
-        if env_bytes is not None:
+        if point.env_bytes is not None:
             env.close()
-            env = pickle.loads(env_bytes)
+            env = pickle.loads(point.env_bytes)
             obs = np.asarray(runner["obs"])
         else:
             obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
         log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
+    elif point is not None:  # der graph's agent node: same learner, a new episode in this env
+        resume_step = agent.steps
+        obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+        log.info("resumed the agent node's learner from %s at step %d (%d transitions in replay); episode "
+                 "counts start at 0", resume, agent.steps, len(agent.replay))
     else:
         obs, _ = env.reset(seed=t_cfg.seed)
 

@@ -82,9 +82,18 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     if args.config is None and args.resume is not None:
         from der_ros.agent.dqn import read_checkpoint
 
-        stored = read_checkpoint(args.resume)["extra"].get("config")
+        try:
+            ckpt = read_checkpoint(args.resume)
+        except FileNotFoundError:
+            raise ConfigError(f"--resume {args.resume}: no such checkpoint") from None
+        except Exception as exc:  # noqa: BLE001 - torch.load of a file that is not ours
+            raise ConfigError(f"--resume {args.resume}: not a der_ros checkpoint ({type(exc).__name__}: {exc})") from None
+        extra = ckpt.get("extra") if isinstance(ckpt, dict) else None
+        stored = extra.get("config") if isinstance(extra, dict) else None
         if stored is None:
-            raise ConfigError(f"{args.resume}: checkpoint has no stored config; pass --config")
+            raise ConfigError(
+                f"--resume {args.resume}: the checkpoint holds no training config (der graph's agent node writes none); "
+                "pass --config with the environment to continue in, e.g. --config config/ring.yaml")
         data = apply_dotted_overrides(stored, dotted)
         data = apply_dotted_overrides(data, set_values)
         return experiment_from_dict(data, source=f"{args.resume} [config] + command line")
@@ -104,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
     from der_ros.train.runner import train
 
     run_dir = cfg.train.run_dir
-    if run_dir is None and args.resume is not None:
-        run_dir = str(Path(args.resume).parent)
+    if run_dir is None and args.resume is not None and (Path(args.resume).parent / "config.yaml").is_file():
+        run_dir = str(Path(args.resume).parent)  # a der train run continues in its own directory
     summary = train(cfg, run_dir=run_dir, resume=args.resume)
     print(
         f"run {summary.run_dir}: {summary.steps} steps, {summary.episodes} episodes, "

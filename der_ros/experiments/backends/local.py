@@ -8,6 +8,7 @@ view shows them) and a Ctrl-C never has queued work to cancel inside the pool.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import signal
 from collections import deque
@@ -86,6 +87,13 @@ class LocalBackend(Backend):
                     while queue and len(pending) < workers:
                         submit()
         except KeyboardInterrupt:
+            # A terminal's Ctrl-C reaches the workers too, but a SIGINT/SIGTERM sent to this process
+            # alone (a background job) would leave them training to the end: pass it on.
+            for child in multiprocessing.active_children():
+                try:
+                    os.kill(child.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
             log.warning("interrupted: workers write checkpoints; rerun the same command to continue")
             raise
         finally:
