@@ -19,7 +19,9 @@ Modes
     After publishing step k the bridge waits for the command stamped t_k. The command callback
     steps the simulation directly (single-threaded executor, no polling timer); a one-shot
     steady-clock timer fires after ``command_timeout`` seconds and steps with the default
-    action (0 = keep lane). Late and duplicate commands are rejected by
+    action (0 = keep lane). The timeout is a deadline: a command the executor hands over after it
+    (before the timer's turn came, e.g. while the scene markers were being published) finds the step
+    already timed out. Late and duplicate commands are rejected by
     :class:`sumo_bridge.lockstep.CommandGate` and never applied to another step.
 ``free_run``
     A timer steps the simulation every ``step_seconds / real_time_factor`` wall seconds with
@@ -152,6 +154,7 @@ class BridgeNode(Node):
         steady = RclClock(clock_type=ClockType.STEADY_TIME)
         self._timeout_timer = self.create_timer(self.cfg.command_timeout, self._on_timeout, clock=steady,
                                                 autostart=False)
+        self._deadline = float("inf")  # time.monotonic() by which the open step's command must be judged (lockstep)
         self._run_timer = None
         self._startup_timer = self.create_timer(0.05, self._maybe_start, clock=steady)
         self._startup_deadline = time.monotonic() + self.cfg.wait_for_agent
@@ -238,6 +241,7 @@ class BridgeNode(Node):
             self._sent_at[stamp] = time.perf_counter_ns()
             if self.cfg.mode == "lockstep":
                 self._timeout_timer.reset()
+                self._deadline = time.monotonic() + self.cfg.command_timeout
         self.pub_state.publish(mc.points_to_cloud(info["points"], stamp))
         pos = info.get("position")
         if pos is not None:
@@ -287,6 +291,8 @@ class BridgeNode(Node):
     # -- commands --------------------------------------------------------------------------------
     def _on_command(self, data: bytes, info: dict[str, Any]) -> None:
         del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
+        if self.cfg.mode == "lockstep" and self.gate.open_key is not None and time.monotonic() >= self._deadline:
+            self._on_timeout()  # its deadline passed before the timer's turn: these commands are late
         self._judge_command(data)
         for queued in take_queued(self._cmd_sub, self.cfg.command_queue_depth):  # the rest of the queue, now
             self._judge_command(queued)
