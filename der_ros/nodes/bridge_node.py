@@ -291,8 +291,6 @@ class BridgeNode(Node):
     # -- commands --------------------------------------------------------------------------------
     def _on_command(self, data: bytes, info: dict[str, Any]) -> None:
         del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
-        if self.cfg.mode == "lockstep" and self.gate.open_key is not None and time.monotonic() >= self._deadline:
-            self._on_timeout()  # its deadline passed before the timer's turn: these commands are late
         self._judge_command(data)
         for queued in take_queued(self._cmd_sub, self.cfg.command_queue_depth):  # the rest of the queue, now
             self._judge_command(queued)
@@ -300,6 +298,13 @@ class BridgeNode(Node):
     def _judge_command(self, data: bytes) -> None:
         if self.finished:
             return
+        # Checked for every command, the drained ones too (a step opened while this callback ran has its own
+        # deadline): once the open step's deadline has passed, it times out before the timer's turn, and a
+        # command for it is late.
+        if self.cfg.mode == "lockstep" and self.gate.open_key is not None and time.monotonic() >= self._deadline:
+            self._on_timeout()
+            if self.finished:
+                return
         sender = cdr_command_sender(data)
         early = self.gate.screen(sender)  # not the locked sender: dropped undecoded (a few us, not ~50)
         if early is not None:
