@@ -59,3 +59,21 @@ def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> N
     assert f"| ring | λ = 0.9 | 0 | {scores['eval_success']:.3f} | {scores['eval_collision']:.3f} " in text
     assert f"{scores['train_total_reward']:.2f}" in text and "eclipse-sumo" in text
     assert json.loads(js.read_text())["ring"]["der0.9"]["seeds"] == [0]
+
+    # --urban-seeds: urban ran fewer seeds than ring; the runs section says how many per network
+    md2, js2 = write_table3({"ring": {method.name: [run, run]}, "urban": {method.name: [run]}},
+                            {method.name: method.label}, {}, tmp_path / "mixed" / "table3.md", "der table3 ...",
+                            [0, 1], {"ring": 120, "urban": 120}, 1.0)  # fmt: skip
+    assert "(2 per method; runs per network: ring 2, urban 1)" in md2.read_text()
+    assert [len(v["der0.9"]["eval_success"]) for v in json.loads(js2.read_text()).values()] == [2, 1]
+
+
+def test_urban_seeds_out_of_range_is_refused_before_any_run(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "der_ros.cli", "table3", "--seeds", "3", "--urban-seeds", "4",
+                          "--out", str(tmp_path / "runs"), "--results", str(tmp_path)],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode != 0 and "--urban-seeds = 4, expected 1..3" in out.stderr + out.stdout
+    assert not (tmp_path / "runs").exists()

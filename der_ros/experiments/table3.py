@@ -96,6 +96,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training YAML of the urban network (default config/urban.yaml)")  # fmt: skip
     parser.add_argument("--networks", nargs="+", choices=tuple(NETWORKS), default=list(NETWORKS),
                         help="which networks to run (default: both)")  # fmt: skip
+    parser.add_argument("--urban-seeds", dest="urban_seeds", type=int, default=None,
+                        help="urban runs use only the first N of the seeds (an urban run costs ~3 ring runs; "
+                        "default: all of them)")  # fmt: skip
     parser.add_argument("--baseline-params", dest="baseline_params", default=None,
                         help="tuned gap-acceptance thresholds (default config/baselines.yaml)")  # fmt: skip
     parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
@@ -205,7 +208,11 @@ def write_table3(
         lines += _significance(net, payload[net], labels)
         lines += ["", f"![{net}: evaluation and training curves](table3_{net}_curves.png)", ""]
     info = environment_info() | _versions()
-    lines += run_details(command, seeds, steps, wall_s, info, per_seed, seeds_per="method and network")
+    counts = {net: max((len(runs) for runs in by_m.values()), default=0) for net, by_m in results.items()}
+    seeds_per = "method and network"
+    if len(set(counts.values())) > 1:  # --urban-seeds: urban ran the first few seeds only
+        seeds_per = "method; runs per network: " + ", ".join(f"{net} {n}" for net, n in counts.items())
+    lines += run_details(command, seeds, steps, wall_s, info, per_seed, seeds_per=seeds_per)
     md = write_markdown(path, lines)
     js = path.with_suffix(".json")
     tmp = js.with_name(f".{js.name}.tmp")
@@ -245,8 +252,11 @@ def run(args: argparse.Namespace) -> int:
     overrides = suite_overrides(args)
     configs = {"ring": args.config, "urban": args.urban_config}
     specs: list[RunSpec] = []
+    if args.urban_seeds is not None and not 1 <= args.urban_seeds <= len(seeds):
+        raise SystemExit(f"der table3: --urban-seeds = {args.urban_seeds}, expected 1..{len(seeds)} (--seeds)")
+    net_seeds = {net: seeds[: args.urban_seeds] if net == "urban" and args.urban_seeds else seeds for net in args.networks}
     for net in args.networks:
-        specs += plan_runs(configs[net], methods, seeds, args.out, overrides, group=net)
+        specs += plan_runs(configs[net], methods, net_seeds[net], args.out, overrides, group=net)
     summaries = run_specs(specs, backend=backend_from_args(args))
     if report_interrupted("table3", summaries):
         return 130
@@ -271,6 +281,8 @@ def run(args: argparse.Namespace) -> int:
     steps = {net: max(int(r.summary["steps"]) for runs in by_m.values() for r in runs) for net, by_m in results.items()}
     out = Path(args.results)
     extra = ["--urban-config", str(args.urban_config), "--networks", *args.networks]
+    if args.urban_seeds is not None:
+        extra += ["--urban-seeds", str(args.urban_seeds)]
     md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
                           steps, total_training_time(results))  # fmt: skip
     figures = []
