@@ -70,17 +70,30 @@ def _clean(scores: Sequence[float] | np.ndarray) -> np.ndarray:
     return x[~np.isnan(x)]
 
 
-def _quiet() -> Any:
-    """rliable passes a RandomState to arch, which warns that it will want a Generator one day;
-    and it logs one absl INFO line per interval."""
-    import logging
-    import warnings
+class _Quiet:
+    """rliable passes a RandomState to arch, which warns that it will want a Generator one day, and it
+    logs one absl INFO line per interval: both silenced. Its stratified bootstrap draws its indices from
+    numpy's *global* random state (``np.random.choice``), whatever ``random_state`` says: that state is
+    seeded here and restored on exit, so an interval is the same on every rerun of a report."""
 
-    logging.getLogger("absl").setLevel(logging.WARNING)
-    ctx = warnings.catch_warnings()
-    ctx.__enter__()
-    warnings.simplefilter("ignore", FutureWarning)
-    return ctx
+    def __init__(self) -> None:
+        import logging
+        import warnings
+
+        logging.getLogger("absl").setLevel(logging.WARNING)
+        self._warnings = warnings.catch_warnings()
+        self._warnings.__enter__()
+        warnings.simplefilter("ignore", FutureWarning)
+        self._state = np.random.get_state()
+        np.random.seed(_SEED)
+
+    def __exit__(self, *exc: Any) -> None:
+        np.random.set_state(self._state)
+        self._warnings.__exit__(*exc)
+
+
+def _quiet() -> _Quiet:
+    return _Quiet()
 
 
 def _interval(scores: np.ndarray, func: Any, reps: int) -> Interval:
