@@ -63,7 +63,7 @@ RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
 
 
 def ring_config(steps: int) -> ExperimentConfig:
-    """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint."""
+    """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint/evaluation."""
     return load_experiment_config(
         RING_YAML,
         {
@@ -76,6 +76,10 @@ def ring_config(steps: int) -> ExperimentConfig:
             "train.tensorboard": False,
             "train.progress": False,
             "train.save_final_checkpoint": False,
+            # no greedy evaluation: SB3's loop has none, and the final one (300 episodes in a second
+            # process) would count as loop time
+            "train.eval_interval": 0,
+            "train.final_eval_episodes": 0,
         },
     )
 
