@@ -112,6 +112,7 @@ def load_gap_params(network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> Gap
     section = (data.get("gap_acceptance") or {}).get(network)
     if not isinstance(section, dict):
         raise ConfigError(f"{path}: gap_acceptance.{network} missing, expected lead_gap/follow_gap/time_headway")
+    section = {k: v for k, v in section.items() if k != "tuned"}  # see gap_params_tuned
     unknown = set(section) - {"lead_gap", "follow_gap", "time_headway"}
     if unknown:
         raise ConfigError(f"{path}: gap_acceptance.{network}: unknown keys {sorted(unknown)}")
@@ -123,6 +124,16 @@ def load_gap_params(network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> Gap
         if not math.isfinite(v) or v < 0:
             raise ConfigError(f"{path}: gap_acceptance.{network}.{k} = {v!r}, expected a finite value >= 0")
     return params
+
+
+def gap_params_tuned(network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> bool:
+    """Whether ``config/baselines.yaml`` marks ``network``'s thresholds as tuned (``tuned: false`` = a
+    hand-set starting point; absent = tuned)."""
+    data = read_yaml_mapping(Path(path), expected="a mapping of baselines")
+    tuned = ((data.get("gap_acceptance") or {}).get(network) or {}).get("tuned", True)
+    if not isinstance(tuned, bool):
+        raise ConfigError(f"{path}: gap_acceptance.{network}.tuned = {tuned!r}, expected true or false")
+    return tuned
 
 
 def _per_env(rule: Any) -> Policy:

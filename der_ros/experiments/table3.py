@@ -45,6 +45,7 @@ from der_ros.experiments.baselines import (
     DEFAULT_PARAMS_FILE,
     BaselineJob,
     baseline_names,
+    gap_params_tuned,
     load_gap_params,
     run_baselines,
 )
@@ -150,8 +151,11 @@ def write_table3(
     seeds: Sequence[int],
     steps: dict[str, int],
     wall_s: float,
+    baseline_labels: dict[str, dict[str, str]] | None = None,
 ) -> tuple[Path, Path]:
-    """``table3.md`` (see the module docstring) and ``table3.json`` (every per-seed number)."""
+    """``table3.md`` (see the module docstring) and ``table3.json`` (every per-seed number).
+
+    ``baseline_labels``: per network, labels that replace ``BASELINE_LABELS`` (e.g. an untuned gap rule)."""
     scores = {net: {m: [score_run(r) for r in runs] for m, runs in by_m.items()} for net, by_m in results.items()}
     n_eval = max((int(s["eval_episodes"]) for by_m in scores.values() for ss in by_m.values() for s in ss), default=0)
     lines = [
@@ -197,7 +201,8 @@ def write_table3(
         for bname, res in baselines.get(net, {}).items():
             b = _baseline_scores(res)
             payload[net][bname] = b
-            lines.append(f"| *baseline:* {BASELINE_LABELS.get(bname, bname)} | {b['eval_success']:.3f} "
+            label = (baseline_labels or {}).get(net, {}).get(bname) or BASELINE_LABELS.get(bname, bname)
+            lines.append(f"| *baseline:* {label} | {b['eval_success']:.3f} "
                          f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} | — | — |")  # fmt: skip
         lines += ["", "Mean over seeds [95% CI] of the same evaluation (the IQM above is the headline):", "",
                   "| Method | Success | Caused collision | Return |", "|---|---|---|---|"]  # fmt: skip
@@ -278,17 +283,20 @@ def run(args: argparse.Namespace) -> int:
         for net, job in jobs:
             baselines.setdefault(net, {})[job.name] = evaluated[job.out_dir]
     labels = {m.name: m.label for m in methods}
+    params_file = args.baseline_params or DEFAULT_PARAMS_FILE
+    b_labels = {net: {"gap_acceptance": "gap acceptance (not tuned: hand-set thresholds)"}
+                for net in baselines if not gap_params_tuned(net, params_file)}  # fmt: skip
     steps = {net: max(int(r.summary["steps"]) for runs in by_m.values() for r in runs) for net, by_m in results.items()}
     out = Path(args.results)
     extra = ["--urban-config", str(args.urban_config), "--networks", *args.networks]
     if args.urban_seeds is not None:
         extra += ["--urban-seeds", str(args.urban_seeds)]
     md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
-                          steps, total_training_time(results))  # fmt: skip
+                          steps, total_training_time(results), b_labels)  # fmt: skip
     figures = []
     for net, by_method in results.items():
         fig = out / f"table3_{net}_curves.png"
-        marks = {BASELINE_LABELS[b]: {"success": r.success_rate, "collision": r.collision_rate}
+        marks = {b_labels.get(net, {}).get(b, BASELINE_LABELS[b]): {"success": r.success_rate, "collision": r.collision_rate}
                  for b, r in baselines.get(net, {}).items() if b in ("gap_acceptance", "sumo")}  # fmt: skip
         plot_eval_curves(by_method, labels, fig, metrics=("success", "collision"), baselines=marks,
                          title=f"{NETWORKS[net]}: greedy evaluation (IQM over seeds) and training returns")  # fmt: skip
