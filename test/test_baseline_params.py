@@ -13,9 +13,12 @@ from der_ros.experiments.table3 import write_table3
 REPO = Path(__file__).resolve().parent.parent
 
 
-def test_shipped_file_marks_urban_untuned_and_ring_tuned() -> None:
-    assert gap_params_tuned("ring") and not gap_params_tuned("urban")
-    assert load_gap_params("urban").lead_gap == 2.0  # 'tuned' is not a threshold
+def test_tuned_flag_defaults_to_true_and_is_not_a_threshold(tmp_path: Path) -> None:
+    assert gap_params_tuned("ring") and gap_params_tuned("urban")  # the shipped file: both tuned
+    f = tmp_path / "b.yaml"
+    f.write_text("gap_acceptance:\n  urban: {lead_gap: 2, follow_gap: 3, time_headway: 1, tuned: false}\n")
+    assert not gap_params_tuned("urban", f)
+    assert load_gap_params("urban", f).lead_gap == 2.0  # 'tuned' is not a threshold
 
 
 def test_bad_tuned_flag_and_unknown_keys_are_named(tmp_path: Path) -> None:
