@@ -47,6 +47,13 @@ class ScenarioConfig:
         "gamma. True: success terminates the episode (our earlier structure; it forfeits the speed reward of "
         "the remaining steps, which makes never changing lane optimal for gamma > ~0.977, see the README)",
     )
+    lane_changes_after_success: bool = param(
+        False,
+        "False (default): once the target lane is reached the task is done, the ego stays on it and lane-change "
+        "commands are no-ops for the rest of the episode (the speed reward keeps flowing). True: commands still "
+        "act after success; the bonus is not paid again, so the agent can drift back and forth between lanes "
+        "for nothing, and the observation cannot tell a return to the start lane from a fresh start",
+    )
     warmup_seconds: float = param(
         5.0, "ring: simulated seconds after placing the vehicles at standstill, before the first observation", low=0.0
     )

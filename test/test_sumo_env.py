@@ -185,8 +185,9 @@ def test_unsafe_lane_change_collides_with_penalty(ring: LaneChangeEnv) -> None:
 
 def test_safe_lane_change_pays_the_bonus_once_and_the_episode_goes_on(ring: LaneChangeEnv) -> None:
     """The episode-structure rule (README "Design choices"): success pays +100 once, in the step of the
-    change, and the ego keeps driving to the horizon with the speed reward flowing; the outcome
-    'success' is reported at the horizon, as a truncation (the learner bootstraps through it)."""
+    change, and the ego keeps driving on the target lane to the horizon with the speed reward flowing:
+    the task is done, so later lane-change commands are no-ops; the outcome 'success' is reported at
+    the horizon, as a truncation (the learner bootstraps through it)."""
     info = _find_moment(ring, want_unsafe=False, seeds=range(20, 40))
     start_step = info["episode_step"]
     _obs, reward, terminated, truncated, info = ring.step(1)
@@ -194,19 +195,42 @@ def test_safe_lane_change_pays_the_bonus_once_and_the_episode_goes_on(ring: Lane
     total_bonus = reward - math.log(max(info["mean_speed"], ring.config.min_speed))
     assert total_bonus == pytest.approx(100.0)
     assert not terminated and not truncated and info["event"] is None
-    assert info["target_reached"] and info["lane"] == 1
+    assert info["target_reached"] and info["lane"] == 1 and info["lane_changes"] == 1
     steps = start_step + 1
     while not (terminated or truncated):
-        # back to the start lane and again to the target: no second bonus
-        action = 2 if steps == start_step + 3 else (1 if steps == start_step + 6 else 0)
-        _obs, reward, terminated, truncated, info = ring.step(action)
+        # "right" would take the ego back to the start lane: a no-op now
+        _obs, reward, terminated, truncated, info = ring.step(2 if steps % 2 else 1)
         steps += 1
-        if terminated:  # only a collision can end it early (rare with these manoeuvres)
-            assert info["event"] == "collision"
-            return
+        assert not terminated, "the ego drove on its target lane; SUMO's car following does not collide"
+        assert info["lane"] == 1 and info["lane_changes"] == 1
         assert reward == pytest.approx(math.log(max(info["mean_speed"], ring.config.min_speed)))
     assert truncated and steps == ring.config.max_episode_steps
     assert info["event"] == "success" and info["target_reached"]
+
+
+def test_lane_changes_after_success_act_but_never_pay_again() -> None:
+    """lane_changes_after_success=True: commands still act after success (back to the start lane and
+    to the target again), and the bonus is not paid a second time."""
+    env = LaneChangeEnv(ScenarioConfig.ring(lane_changes_after_success=True))
+    try:
+        info = _find_moment(env, want_unsafe=False, seeds=range(20, 40))
+        start_step = info["episode_step"]
+        _obs, reward, terminated, truncated, info = env.step(1)
+        assert info["target_reached"] and info["lane"] == 1
+        steps, lanes = start_step + 1, []
+        while not (terminated or truncated):
+            action = 2 if steps == start_step + 3 else (1 if steps == start_step + 6 else 0)
+            _obs, reward, terminated, truncated, info = env.step(action)
+            steps += 1
+            lanes.append(info["lane"])
+            if terminated:  # only a collision can end it early (rare with these manoeuvres)
+                assert info["event"] == "collision"
+                return
+            assert reward == pytest.approx(math.log(max(info["mean_speed"], env.config.min_speed)))
+        assert 0 in lanes and lanes[-1] == 1 and info["lane_changes"] == 3
+        assert truncated and info["event"] == "success"
+    finally:
+        env.close()
 
 
 def test_sumo_lane_change_mode_refuses_an_unsafe_command() -> None:

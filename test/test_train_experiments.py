@@ -180,3 +180,25 @@ def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
     assert "NoSuchEnv" in str(err.value) and "rerun the same command" in str(err.value)
     assert json.loads((tmp_path / "good" / "dqn" / "seed0" / "summary.json").read_text())["steps"] == 200
     assert not (tmp_path / "bad" / "dqn" / "seed0" / "summary.json").exists()
+
+
+def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
+    unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""
+    from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
+
+    base = ["sweep", str(REPO / "config" / "cartpole.yaml"), "--grid", "agent.gamma=0.9,0.98", "--seeds", "1",
+            "--jobs", "2", "--set", "train.total_steps=150", "--set", "agent.learning_starts=50",
+            "--set", "agent.hidden_sizes=[16]", "--set", "train.tensorboard=false",
+            "--set", "train.eval_interval=0", "--set", "train.final_eval_episodes=3"]  # fmt: skip
+    assert cli.main(base + ["--out", str(tmp_path / "tune")]) == 0
+    for point in ("gamma=0.9", "gamma=0.98"):
+        final = json.loads((tmp_path / "tune" / point / "seed100" / "evaluation.json").read_text())
+        assert final["seeds"] == [TUNING_EVAL_SEED_BASE + k for k in range(3)]
+    assert f"- evaluation seeds: {TUNING_EVAL_SEED_BASE} + k" in (tmp_path / "tune" / "sweep.md").read_text()
+    assert json.loads((tmp_path / "tune" / "sweep.json").read_text())["eval_seed_base"] == TUNING_EVAL_SEED_BASE
+    explicit = base + ["--out", str(tmp_path / "report"), "--set", f"train.eval_seed_base={EVAL_SEED_BASE}"]
+    assert cli.main(explicit) == 0
+    final = json.loads((tmp_path / "report" / "gamma=0.9" / "seed100" / "evaluation.json").read_text())
+    assert min(final["seeds"]) == EVAL_SEED_BASE
+    capsys.readouterr()

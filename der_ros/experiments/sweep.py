@@ -1,13 +1,17 @@
 """``der sweep``: a grid of config overrides x training seeds, run like a table suite.
 
     der sweep config/ring.yaml --grid agent.gamma=0.9,0.95,0.98 --grid agent.epsilon_decay_steps=2500,5000 \\
-        --seeds 3 --first-seed 100 --set replay.kind=uniform --set train.eval_seed_base=1500000000
+        --seeds 3 --first-seed 100 --set replay.kind=uniform
 
 Every grid point is one "method" of the suite machinery (:mod:`der_ros.experiments.suite`): run
 directories ``<out>/<point>/seed<k>/``, finished runs skipped, interrupted ones resumed. At the
 end ``<results>/sweep.md`` ranks the points by the IQM over seeds of the final greedy evaluation
 (``--rank-by``), and ``sweep.json`` holds every per-seed number. This is how we chose the settings
 the paper leaves open (on tuning seeds and tuning evaluation seeds only; see the README).
+
+A sweep is tuning, so its greedy evaluations run on the **tuning** evaluation seeds
+(``TUNING_EVAL_SEED_BASE + k``) unless ``--set train.eval_seed_base=...`` says otherwise: the
+report's evaluation episodes never inform a choice.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from der_ros.experiments.suite import (
     plan_runs,
 )
 from der_ros.train.config import add_set_argument, parse_assignments
+from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
 
 __all__ = ["add_arguments", "run", "parse_grid", "grid_methods", "score_sweep_run", "RANK_KEYS"]
 
@@ -154,7 +159,7 @@ def sweep_command(args: argparse.Namespace) -> str:
 
 def write_sweep(
     results: dict[str, list[RunResult]], methods: list[Method], out: Path, command: str, seeds: Sequence[int],
-    rank_by: str,
+    rank_by: str, eval_seed_base: int = TUNING_EVAL_SEED_BASE,
 ) -> Path:
     """``sweep.md`` (points ranked by IQM of ``rank_by``) and ``sweep.json`` (every per-seed score)."""
     scores = {name: [score_sweep_run(r) for r in runs] for name, runs in results.items()}
@@ -184,7 +189,8 @@ def write_sweep(
             f"| {iqm('eval_return', 2)} | {_mean([s['max_ma20'] for s in per]):.2f} "
             f"| {_mean([s['avg_score'] for s in per]):.2f} |"
         )
-    lines += ["", "## Runs", "", f"- command: `{command}`", f"- seeds: {', '.join(map(str, seeds))}"]
+    lines += ["", "## Runs", "", f"- command: `{command}`", f"- seeds: {', '.join(map(str, seeds))}",
+              f"- evaluation seeds: {eval_seed_base} + k"]
     lines += [f"- {k}: {v}" for k, v in environment_info().items()]
     lines += ["", "## Per seed", "", "| Point | Seed | " + " | ".join(RANK_KEYS) + " | eval collision |",
               "|---|---|" + "---|" * (len(RANK_KEYS) + 1)]  # fmt: skip
@@ -197,6 +203,7 @@ def write_sweep(
         "command": command,
         "seeds": list(seeds),
         "rank_by": rank_by,
+        "eval_seed_base": eval_seed_base,
         "points": {m.name: {"overrides": dict(m.overrides), "seeds": [r.spec.seed for r in results[m.name]],
                             **{k: [s[k] for s in scores[m.name]] for k in scores[m.name][0]}}
                    for m in methods if scores[m.name]},
@@ -209,6 +216,7 @@ def run(args: argparse.Namespace) -> int:
     methods = grid_methods(parse_grid(args.grid))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     overrides = dict(parse_assignments(args.set_values, "command line", label="--set"))
+    overrides.setdefault("train.eval_seed_base", TUNING_EVAL_SEED_BASE)  # tuning never sees the report's episodes
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
     summaries = run_specs(specs, backend=backend_from_args(args))
     if any(s.get("interrupted") for s in summaries):
@@ -217,7 +225,8 @@ def run(args: argparse.Namespace) -> int:
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}
     for spec in specs:
         results[spec.method.name].append(load_result(spec, ()))
-    md = write_sweep(results, methods, Path(args.results or args.out), sweep_command(args), seeds, args.rank_by)
+    md = write_sweep(results, methods, Path(args.results or args.out), sweep_command(args), seeds, args.rank_by,
+                     int(overrides["train.eval_seed_base"]))
     print(md.read_text())
     print(f"wrote {md}")
     return 0
