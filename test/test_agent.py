@@ -438,3 +438,23 @@ def test_learner_step_is_bit_identical_to_the_autograd_reference(kind: str, over
     sa, sb = fast.replay.state_dict(), ref.replay.state_dict()
     for key in sa:  # priorities and DER weights come from the TD errors
         assert np.asarray(sa[key]).tobytes() == np.asarray(sb[key]).tobytes(), key
+
+
+def test_fast_paths_follow_weights_loaded_from_a_checkpoint() -> None:
+    """act() and the TD targets read the networks through detached views of their weights: after
+    load_state_dict they must see the loaded weights, not the ones the agent was built with."""
+    src, dst = small_agent(), small_agent()
+    rng = np.random.default_rng(1)
+    with torch.no_grad():  # make src's networks differ from dst's (same seed, same initial weights)
+        for net in (src.q_net, src.target_net):
+            for p in net.parameters():
+                p.copy_(torch.from_numpy(rng.normal(size=tuple(p.shape)).astype(np.float32)))
+    dst.load_state_dict(src.state_dict())
+    obs = rng.normal(size=(64, 3)).astype(np.float32)
+    with torch.no_grad():
+        want_actions = src.q_net(torch.from_numpy(obs)).argmax(1).numpy()
+        want_next_v = src.target_net(torch.from_numpy(obs)).amax(1).numpy()
+    assert [dst.act(o, explore=False) for o in obs] == want_actions.tolist()
+    assert len(set(want_actions.tolist())) == 2  # both actions occur: the check could fail
+    y = dst.td_targets(torch.zeros(64), torch.from_numpy(obs), torch.zeros(64, dtype=torch.bool))
+    np.testing.assert_array_equal(y.numpy(), np.float32(GAMMA) * want_next_v)

@@ -366,3 +366,26 @@ def test_lambda_zero_is_uniform_dqn_and_one_is_h2_only():
         assert (b.source == (1 if ready else 0)).all()
         b1.update_priorities(b.indices, np.ones(8))
     assert b1.h2_size >= 8
+
+
+def test_building_a_prioritized_buffer_loads_the_compiled_kernels() -> None:
+    """make_replay loads the numba kernels (warm_up_kernels), so the ~0.5 s load does not fall on
+    the first gradient step. Run in a fresh process: this one may have loaded them already."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from der_ros.replay import double_replay_kernels as d, sum_tree_kernels as s\n"
+        "from der_ros.replay._numba import HAVE_NUMBA\n"
+        "from der_ros.replay.config import ReplayConfig\n"
+        "from der_ros.replay.factory import make_replay\n"
+        "assert HAVE_NUMBA\n"
+        "kernels = (d._der_plan_nb, d._dense_remove_nb, s._sample_nb, s._propagate_nb)\n"
+        "assert not any(k.signatures for k in kernels)\n"
+        "make_replay(ReplayConfig(kind='der', capacity=1000, h2_capacity=256), (3,), np.float32, 32)\n"
+        "print([len(k.signatures) for k in kernels])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert all(int(n) >= 1 for n in out.stdout.strip().strip("[]").split(","))

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from der_ros.agent.config import DQNConfig
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
-from der_ros.agent.mlp_backward import MLPBackward
+from der_ros.agent.mlp_backward import MLPBackward, detached_layers, mlp_forward
 from der_ros.agent.networks import MLPQNetwork, flatten_parameters, make_q_network
 from der_ros.agent.optim import FlatAdam
 from der_ros.agent.schedules import LinearSchedule
@@ -109,6 +109,11 @@ class DQNAgent:
         self._on_cpu = self.device.type == "cpu"
         self._gamma32 = np.float32(dqn_cfg.gamma)
         self._mlp = MLPBackward(self.q_net) if isinstance(self.q_net, MLPQNetwork) and dqn_cfg.loss == "mse" else None
+        # detached views of the MLP's weights (no autograd, no no_grad context on the hot path):
+        # the target network's for the TD targets, the online network's for acting (CPU)
+        flat_mlp = isinstance(self.q_net, MLPQNetwork) and len(self.obs_shape) == 1 and self.obs_dtype == np.float32
+        self._target_layers = detached_layers(self.target_net) if flat_mlp else None
+        self._act_layers = detached_layers(self.q_net) if flat_mlp and self._on_cpu else None
         self._inv_batch = torch.ones((), device=self.device).div(dqn_cfg.batch_size)  # mean's backward: 1/B
         self._grad_out = torch.zeros(dqn_cfg.batch_size, self.n_actions, device=self.device)
         self.epsilon_schedule = LinearSchedule(dqn_cfg.epsilon_start, dqn_cfg.epsilon_end, dqn_cfg.epsilon_decay_steps)
@@ -136,6 +141,9 @@ class DQNAgent:
         eps = self.epsilon if explore else self.cfg.eval_epsilon
         if eps > 0.0 and self.rng.random() < eps:
             return int(self.rng.integers(self.n_actions))
+        if self._act_layers is not None:  # the same forward as q_net's, on detached views of its weights
+            x = torch.from_numpy(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
+            return int(mlp_forward(x, self._act_layers).argmax(1).item())
         with torch.inference_mode():
             x = torch.from_numpy(np.asarray(obs, dtype=self.obs_dtype)).unsqueeze(0).to(self.device)
             return int(self.q_net(x).argmax(1).item())
@@ -204,16 +212,26 @@ class DQNAgent:
         """y = r + gamma * (1 - terminated) * V_target(s') (eq. 1); truncation never cuts the bootstrap."""
         return self._targets(rewards, next_obs, self.cfg.gamma * (1.0 - terminated.float()))
 
-    @torch.no_grad()
     def _targets(self, rewards: torch.Tensor, next_obs: torch.Tensor, discount: torch.Tensor) -> torch.Tensor:
         """y = r + discount * V_target(s'), ``discount`` = gamma, or 0 where the episode terminated."""
-        next_q = self.target_net(next_obs)
-        if self.cfg.double_dqn:
-            best = self.q_net(next_obs).argmax(1, keepdim=True)
-            next_v = next_q.gather(1, best).squeeze(1)
-        else:
-            next_v = next_q.amax(1)
-        return rewards + discount * next_v
+        if self._target_layers is not None:  # the MLP on detached weights: the same kernels, no autograd
+            next_q = mlp_forward(next_obs, self._target_layers)
+            if self.cfg.double_dqn:
+                next_v = next_q.gather(1, mlp_forward(next_obs, self._mlp_layers()).argmax(1, keepdim=True)).squeeze(1)
+            else:
+                next_v = next_q.amax(1)
+            return rewards + discount * next_v
+        with torch.no_grad():
+            next_q = self.target_net(next_obs)
+            if self.cfg.double_dqn:
+                best = self.q_net(next_obs).argmax(1, keepdim=True)
+                next_v = next_q.gather(1, best).squeeze(1)
+            else:
+                next_v = next_q.amax(1)
+            return rewards + discount * next_v
+
+    def _mlp_layers(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        return self._mlp.layers if self._mlp is not None else detached_layers(self.q_net)  # type: ignore[arg-type]
 
     def gradient_step(self) -> tuple[float, float, float]:
         """One update now, ignoring the schedule (offline training from recorded transitions).
@@ -243,15 +261,22 @@ class DQNAgent:
             rewards = rewards * self.cfg.reward_scale
         # gamma * (1 - terminated) as float32, the values torch computes for it, in one numpy call
         discount = self._tensor(np.where(batch.terminated, np.float32(0.0), self._gamma32))
-        weights = self._tensor(batch.weights.astype(np.float32, copy=False))
+        # a replay that does not declare itself unweighted (importance_weighted False) is taken as weighted
+        weighted = getattr(self.replay, "importance_weighted", True)
+        weights = self._tensor(batch.weights.astype(np.float32, copy=False)) if weighted or self._mlp is None else None
 
         y = self._targets(rewards, next_obs, discount)
         if self._mlp is not None:
             q = self._mlp.forward(obs).gather(1, actions).squeeze(1)
             td = y - q  # delta of eq. 2
-            loss = (weights * td.square()).mean()
-            # d loss / d q in the order autograd evaluates it: mean (1/B), weights, square (2 delta), minus
-            grad_q = (self._inv_batch * weights) * (td * -2.0)
+            # d loss / d q in the order autograd evaluates it: mean (1/B), weights, square (2 delta), minus;
+            # without importance weights (all 1.0) both products by them are skipped: x * 1.0 == x exactly
+            if weighted:
+                loss = (weights * td.square()).mean()
+                grad_q = (self._inv_batch * weights) * (td * -2.0)
+            else:
+                loss = td.square().mean()
+                grad_q = self._inv_batch * (td * -2.0)
             self._mlp.backward(self._grad_out.zero_().scatter_add_(1, actions, grad_q.unsqueeze(1)))
         else:
             q = self.q_net(obs).gather(1, actions).squeeze(1)

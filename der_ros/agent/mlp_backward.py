@@ -10,8 +10,10 @@ both measured in one process on the shared 2-core machine under load (bench/READ
 
 How it stays exact: every gradient is computed with the kernel autograd itself calls, on
 operands of the same memory layout, in the same order, so the results are bit-identical (checked
-against a plain autograd step by ``test/test_agent.py``). For ``out = F.linear(x, W, b)``, which
-is ``addmm(b, x, W.t())`` for 2-D inputs, autograd's addmm backward computes
+against a plain autograd step by ``test/test_agent.py``). The parameters are used as detached
+views, so none of this records an autograd graph and no ``no_grad`` context is needed. For
+``out = F.linear(x, W, b)``, which is ``addmm(b, x, W.t())`` for 2-D inputs, autograd's addmm
+backward computes
 
 * ``dW = dout.t().mm(x)`` (``W.t()`` is column-major, so the weight gradient comes out as
   ``W``'s own layout),
@@ -32,9 +34,27 @@ import torch.nn.functional as F
 
 from der_ros.agent.networks import MLPQNetwork
 
-__all__ = ["MLPBackward"]
+__all__ = ["MLPBackward", "detached_layers", "mlp_forward"]
 
 _threshold_backward = torch.ops.aten.threshold_backward
+
+
+def detached_layers(net: MLPQNetwork) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(weight, bias) of each layer as detached views: the same memory as the parameters (so they
+    follow every in-place update of the flat buffer), but no autograd recording when used, which
+    spares the ``no_grad`` context on every call of the hot path."""
+    return [(layer.weight.detach(), layer.bias.detach()) for layer in net._linears]
+
+
+def mlp_forward(x: torch.Tensor, layers: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """``MLPQNetwork.forward`` on :func:`detached_layers` (same kernels, same results), for float32
+    inputs of shape (B, obs_dim)."""
+    last = len(layers) - 1
+    for i, (weight, bias) in enumerate(layers):
+        x = F.linear(x, weight, bias)
+        if i < last:
+            x = torch.relu(x)
+    return x
 
 
 class MLPBackward:
@@ -45,15 +65,14 @@ class MLPBackward:
     """
 
     def __init__(self, net: MLPQNetwork) -> None:
-        self.layers = [(layer.weight, layer.bias) for layer in net._linears]
+        self.layers = detached_layers(net)
         self.grads: list[tuple[torch.Tensor, torch.Tensor]] = []
-        for weight, bias in self.layers:
-            if weight.grad is None or bias.grad is None:
+        for layer in net._linears:
+            if layer.weight.grad is None or layer.bias.grad is None:
                 raise ValueError("MLPBackward needs gradient views on every parameter (flatten_parameters)")
-            self.grads.append((weight.grad, bias.grad))
+            self.grads.append((layer.weight.grad, layer.bias.grad))
         self._inputs: list[torch.Tensor] = []
 
-    @torch.no_grad()
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Q-values of a batch (the same operations as ``MLPQNetwork.forward``), keeping each
         layer's input for :meth:`backward`."""
@@ -69,7 +88,6 @@ class MLPBackward:
         self._inputs = inputs
         return x
 
-    @torch.no_grad()
     def backward(self, grad_out: torch.Tensor) -> None:
         """Write d(loss)/d(parameters) into the gradient views, given d(loss)/d(output of :meth:`forward`)."""
         g = grad_out

@@ -54,8 +54,8 @@ class FlatAdam:
     def lr(self, value: float) -> None:
         self.param_groups[0]["lr"] = float(value)
 
-    @torch.no_grad()
     def step(self) -> None:
+        # no no_grad context needed: the flat buffer is a plain tensor (the parameters are views of it)
         self.step_count += 1
         t = self.step_count
         g = self.grads

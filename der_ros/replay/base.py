@@ -92,6 +92,9 @@ class ReplayBuffer(ABC):
 
     #: stable name used in saved files and ``ReplayConfig.kind``
     kind: ClassVar[str] = ""
+    #: whether ``sample()`` returns importance weights other than 1 (PER); the learner skips the
+    #: multiplications by 1.0 otherwise (exact: the loss and gradient are bit for bit the same)
+    importance_weighted: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ writing
     def add(

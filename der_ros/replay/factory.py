@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from der_ros.configuration import ConfigError, validate
+from der_ros.replay._numba import HAVE_NUMBA
 from der_ros.replay.base import ReplayBuffer
 from der_ros.replay.config import ReplayConfig
 from der_ros.replay.double_replay import DoubleReplay
@@ -25,7 +26,7 @@ from der_ros.replay.prioritized import PrioritizedReplay
 from der_ros.replay.storage import check_memory, describe, storage_bytes
 from der_ros.replay.uniform import UniformReplay
 
-__all__ = ["REPLAY_KINDS", "make_replay", "load_replay", "resolve_h2", "check_replay_memory"]
+__all__ = ["REPLAY_KINDS", "make_replay", "load_replay", "resolve_h2", "check_replay_memory", "warm_up_kernels"]
 
 #: ``ReplayConfig.kind`` (also the ``kind`` saved with a buffer's state) -> class
 REPLAY_KINDS: dict[str, type[ReplayBuffer]] = {cls.kind: cls for cls in (UniformReplay, PrioritizedReplay, DoubleReplay)}
@@ -75,6 +76,7 @@ def make_replay(
     if cfg.kind == "uniform":
         return UniformReplay(cfg.capacity, obs_shape, obs_dtype, seed=seed, available_bytes=available_bytes)
     if cfg.kind == "per":
+        warm_up_kernels()
         return PrioritizedReplay(
             cfg.capacity,
             obs_shape,
@@ -86,11 +88,41 @@ def make_replay(
             seed=seed,
             available_bytes=available_bytes,
         )
+    warm_up_kernels()
     n2, k = resolve_h2(cfg, batch_size)
     if batch_size > n2:
         raise ConfigError(f"replay: batch_size = {batch_size}, expected <= h2_capacity ({n2})")
     resolved = dataclasses.replace(cfg, h2_capacity=n2, h2_min_size=k)
     return DoubleReplay(resolved, obs_shape, obs_dtype, seed=seed, available_bytes=available_bytes)
+
+
+_kernels_warm = False
+
+
+def warm_up_kernels() -> None:
+    """Load the compiled sum-tree and DER kernels now, once per process, by running tiny buffers of
+    every prioritized kind through add / sample / update_priorities.
+
+    numba loads a cached kernel at its first call, about 0.5 s for the replay's kernels: without
+    this, that stall fell on the first gradient step of every run (and into the timed loop of
+    ``bench/train_loop.py``). Nothing of the tiny buffers is kept; no RNG of the caller is used.
+    """
+    global _kernels_warm
+    if _kernels_warm or not HAVE_NUMBA:
+        return
+    _kernels_warm = True
+    rng = np.random.default_rng(0)
+    small = dict(capacity=64, h2_capacity=16, h2_min_size=4, lam=0.5)
+    buffers: list[ReplayBuffer] = [PrioritizedReplay(64, (1,), np.float32, seed=0)]
+    for mode in ("copy", "move"):
+        buffers.append(DoubleReplay(ReplayConfig(kind="der", promote_mode=mode, **small), (1,), np.float32, seed=0))
+    obs = np.zeros(1, dtype=np.float32)
+    for buf in buffers:
+        for _ in range(32):
+            buf.add(obs, 0, 0.0, obs, False, False)
+        for _ in range(3):
+            batch = buf.sample(8)
+            buf.update_priorities(batch.indices, rng.standard_normal(8))
 
 
 def load_replay(path: str | os.PathLike[str]) -> ReplayBuffer:

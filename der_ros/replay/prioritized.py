@@ -36,6 +36,7 @@ class PrioritizedReplay(ReplayBuffer):
     """Proportional PER over the last ``capacity`` transitions."""
 
     kind = "per"
+    importance_weighted = True
 
     def __init__(
         self,
