@@ -147,9 +147,9 @@ def test_zstd_and_lz4_compression_round_trip(tmp_path: Path) -> None:
 
 def test_a_long_recording_does_not_grow_the_writers_memory(tmp_path: Path) -> None:
     """Memory per recorded step is flat: every episode event used to stay in memory for the bag's summary (~60 B per
-    decision step, the recorder's creep on a 30k-step run); now the flushed ones live only in episodes.jsonl.
-    (What still grows is one MCAP chunk index per finished chunk, ~0.7 kB, which the file's summary needs: here the
-    payloads are small and flushes rare, so few chunks are finished.)"""
+    decision step, the recorder's creep on a 30k-step run); now the flushed ones live only in episodes.jsonl. And
+    the MCAP chunk index of every finished chunk (~0.7 kB each; a chunk is finished at every flush) waits in a
+    temporary file for the summary (chunk_index_spill), where it was kept in memory (~15 B per step)."""
     import gc
     import tracemalloc
 
@@ -169,8 +169,8 @@ def test_a_long_recording_does_not_grow_the_writers_memory(tmp_path: Path) -> No
                 w.mark_episode(ts, episode=k // 25, event="start")
             elif k % 25 == 24:
                 w.mark_episode(ts, episode=k // 25, event="collision", steps=25, ret=-1.5, lane_changes=3)
-            if k % 500 == 499:
-                w.flush()  # episode events go to episodes.jsonl at a flush
+            if k % 50 == 49:
+                w.flush()  # episode events go to episodes.jsonl at a flush; every flush finishes a chunk
 
     record(range(0, 2000))  # allocations of first use (schemas, buffers) before the measurement
     tracemalloc.start()
@@ -183,12 +183,21 @@ def test_a_long_recording_does_not_grow_the_writers_memory(tmp_path: Path) -> No
     finally:
         tracemalloc.stop()
     w.close()
-    assert grown / 10_000 < 8, f"{grown / 10_000:.1f} B per step"  # was ~60
+    assert grown / 10_000 < 2, f"{grown / 10_000:.1f} B per step"  # was ~60, then ~15 with the chunk indexes
     events = read_episode_summary(tmp_path / "long")
     assert len(events) == 2 * 12000 // 25 and events[-1]["episode"] == 12000 // 25 - 1
     with open(tmp_path / "long" / "long_0.mcap", "rb") as f:  # the summary record still holds every event
-        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        summary = reader.get_summary()
     assert json.loads(meta[EPISODES_KEY]["episodes"]) == events
+    # ... and every chunk's index, which the spill kept out of memory: an indexed read sees every message
+    assert summary is not None and len(summary.chunk_indexes) == 12000 // 50
+    assert summary.statistics.chunk_count == len(summary.chunk_indexes)
+    offsets = [c.chunk_start_offset for c in summary.chunk_indexes]
+    assert offsets == sorted(offsets) and all(c.message_index_offsets for c in summary.chunk_indexes)
+    with open(tmp_path / "long" / "long_0.mcap", "rb") as f:
+        assert sum(1 for _ in make_reader(f).iter_messages(topics=["/clock"])) == 12000
 
 
 def test_episode_marks_and_summary(tmp_path: Path) -> None:

@@ -53,6 +53,7 @@ import yaml
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapFileWriter
 
+from der_ros.bag.chunk_index_spill import spill_chunk_indexes
 from der_ros.bag.reader import BagReader
 from der_ros.contract import (
     EPISODE,
@@ -263,6 +264,8 @@ class BagWriter:
             enable_crcs=True,
             enable_data_crcs=True,
         )
+        # the finished chunks' indexes wait on disk for the summary: memory stays flat on long runs
+        self._chunk_indexes = spill_chunk_indexes(self._mcap, self.path)
         self._mcap.start(profile="ros2", library="der_ros BagWriter (mcap-python)")
         self._files.append(_File(fpath))
         self._schema_ids: dict[str, int] = {}
@@ -289,6 +292,8 @@ class BagWriter:
         if events:
             self._mcap.add_metadata(EPISODES_KEY, {"episodes": json.dumps(events)})
         self._mcap.finish()
+        if self._chunk_indexes is not None:
+            self._chunk_indexes.close()
         self._stream.flush()
         if self.fsync:
             os.fsync(self._stream.fileno())
