@@ -380,7 +380,7 @@ class AgentNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``agent_node`` (ROS arguments: ``--ros-args -p name:=value --params-file f``)."""
-    return run_node(AgentNode, argv)
+    return run_node(AgentNode, argv, executor_kind="events")
 
 
 if __name__ == "__main__":

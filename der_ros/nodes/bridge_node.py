@@ -143,7 +143,6 @@ class BridgeNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, BRIDGE_DIAGNOSTICS, topic_qos(BRIDGE_DIAGNOSTICS))
         # Raw CDR bytes, a deep queue drained in the callback, commands of other senders dropped before they are
         # decoded: a command flood cannot push the agent's answer out of the queue (nodes/queue_drain.py).
-        # Two-argument callback: rclpy passes the MessageInfo (timestamps, sequence numbers).
         self._cmd_sub = self.create_subscription(Joy, COMMAND, self._on_command,
                                                  topic_qos(COMMAND, depth=self.cfg.command_queue_depth), raw=True)
         self._rejects_logged_at = -float("inf")
@@ -205,7 +204,6 @@ class BridgeNode(Node):
             return
         ready = self._ready_ticks >= 4
         self._startup_timer.cancel()
-        self.destroy_timer(self._startup_timer)
         if not ready:
             self.get_logger().warning("no agent found on the graph; starting anyway (default actions on timeout)")
         self._t_start = time.perf_counter()
@@ -289,8 +287,8 @@ class BridgeNode(Node):
         self.finished = True
 
     # -- commands --------------------------------------------------------------------------------
-    def _on_command(self, data: bytes, info: dict[str, Any]) -> None:
-        del info  # no publisher GID in rclpy 7.1's MessageInfo: the sender id is header.frame_id
+    def _on_command(self, data: bytes) -> None:
+        # (no MessageInfo: rclpy 7.1's has no publisher GID, the sender id is header.frame_id)
         self._judge_command(data)
         for queued in take_queued(self._cmd_sub, self.cfg.command_queue_depth):  # the rest of the queue, now
             self._judge_command(queued)
@@ -407,7 +405,7 @@ class BridgeNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``bridge_node`` (ROS arguments: ``--ros-args -p name:=value --params-file f``)."""
-    return run_node(BridgeNode, argv)
+    return run_node(BridgeNode, argv, executor_kind="events")
 
 
 if __name__ == "__main__":

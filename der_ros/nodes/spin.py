@@ -4,10 +4,21 @@ rclpy's own SIGINT/SIGTERM handlers shut the context down from inside the signal
 which a node can no longer publish or save through ROS. The node executables instead install
 handlers that only set a flag; the spin loop then returns, the node's ``on_shutdown()`` runs
 with ROS still up (final checkpoint, summary log, last diagnostics), and the process exits 0.
+
+Executors. The bridge and the agent, the two ends of the lockstep round trip, spin on rclpy's
+``EventsExecutor`` (``rclpy.experimental``, C++): rclpy's ``SingleThreadedExecutor`` rebuilds its
+wait set in Python at every ``spin_once``, which was most of the graph's overhead per step
+(``bench/graph.py``: the lockstep graph went from ~0.7x to ~1.1-1.3x the in-process loop). In
+rclpy 7.1 it does not support subscription callbacks that take the ``MessageInfo`` ("SystemError:
+null argument to internal routine") nor a timer destroyed from its own callback, so nodes on it use
+one-argument callbacks and cancel timers instead. The recorder, which reads ``MessageInfo`` for the
+receive time, stays on ``SingleThreadedExecutor``. ``DER_ROS_EXECUTOR=single|events`` overrides the
+choice for every node (debugging).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -18,7 +29,10 @@ from typing import Any, Protocol
 from der_ros.configuration import ConfigError
 from der_ros.nodes.orphans import stop_with_supervisor
 
-__all__ = ["BackgroundNode", "ManagedNode", "install_stop_handlers", "run_node"]
+__all__ = ["BackgroundNode", "EXECUTORS", "ManagedNode", "install_stop_handlers", "make_executor", "run_node"]
+
+#: executors a node can spin on (see the module docstring)
+EXECUTORS = ("single", "events")
 
 
 class ManagedNode(Protocol):
@@ -48,15 +62,31 @@ def install_stop_handlers() -> dict[str, str]:
     return stop
 
 
-def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll_s: float = 0.1) -> int:
-    """Create the node with ``factory`` (after ``rclpy.init``) and spin it on a single-threaded executor.
+def make_executor(kind: str) -> Any:
+    """A fresh rclpy executor of ``kind`` ('single' or 'events'), or of ``$DER_ROS_EXECUTOR`` when set."""
+    kind = os.environ.get("DER_ROS_EXECUTOR") or kind
+    if kind not in EXECUTORS:
+        raise ConfigError(f"executor = {kind!r} (DER_ROS_EXECUTOR?), expected one of {', '.join(EXECUTORS)}")
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    from rclpy.executors import SingleThreadedExecutor
+
+    return SingleThreadedExecutor()
+
+
+def run_node(
+    factory: Callable[[], Any], argv: Sequence[str] | None = None, poll_s: float = 0.1, executor_kind: str = "single"
+) -> int:
+    """Create the node with ``factory`` (after ``rclpy.init``) and spin it on an ``executor_kind`` executor.
 
     Returns the process exit code: 0 after a signal or when the node set ``finished``, 1 if
     the node could not be created (bad parameters: the error is logged, not a traceback), or the
     node's own ``exit_code`` when it sets one (the agent after its learner diverged).
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
     args = list(sys.argv if argv is None else argv)
@@ -68,9 +98,7 @@ def run_node(factory: Callable[[], Any], argv: Sequence[str] | None = None, poll
         rclpy.logging.get_logger("der_ros").error(f"could not start: {exc}")
         rclpy.try_shutdown()
         return 1
-    # rclpy.experimental.EventsExecutor (present in 7.1) crashed here ("SystemError: null argument to
-    # internal routine") when a timer is destroyed from its own callback; the standard one is used.
-    executor = SingleThreadedExecutor()
+    executor = make_executor(executor_kind)
     executor.add_node(node)
     reason = "finished"
     try:
