@@ -113,7 +113,8 @@ class DQNAgent:
         # the target network's for the TD targets, the online network's for acting (CPU)
         flat_mlp = isinstance(self.q_net, MLPQNetwork) and len(self.obs_shape) == 1 and self.obs_dtype == np.float32
         self._target_layers = detached_layers(self.target_net) if flat_mlp else None
-        self._act_layers = detached_layers(self.q_net) if flat_mlp and self._on_cpu else None
+        self._online_layers = detached_layers(self.q_net) if flat_mlp else None
+        self._act_layers = self._online_layers if self._on_cpu else None
         self._inv_batch = torch.ones((), device=self.device).div(dqn_cfg.batch_size)  # mean's backward: 1/B
         self._grad_out = torch.zeros(dqn_cfg.batch_size, self.n_actions, device=self.device)
         self.epsilon_schedule = LinearSchedule(dqn_cfg.epsilon_start, dqn_cfg.epsilon_end, dqn_cfg.epsilon_decay_steps)
@@ -218,7 +219,8 @@ class DQNAgent:
         if self._target_layers is not None:  # the MLP on detached weights: the same kernels, no autograd
             next_q = mlp_forward(next_obs, self._target_layers)
             if self.cfg.double_dqn:
-                next_v = next_q.gather(1, mlp_forward(next_obs, self._mlp_layers()).argmax(1, keepdim=True)).squeeze(1)
+                best = mlp_forward(next_obs, self._online_layers).argmax(1, keepdim=True)  # type: ignore[arg-type]
+                next_v = next_q.gather(1, best).squeeze(1)
             else:
                 next_v = next_q.amax(1)
             return rewards + discount * next_v
@@ -230,9 +232,6 @@ class DQNAgent:
             else:
                 next_v = next_q.amax(1)
             return rewards + discount * next_v
-
-    def _mlp_layers(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        return self._mlp.layers if self._mlp is not None else detached_layers(self.q_net)  # type: ignore[arg-type]
 
     def gradient_step(self) -> tuple[float, float, float]:
         """One update now, ignoring the schedule (offline training from recorded transitions).
