@@ -6,12 +6,16 @@ In one process, on the default ring scenario (``config/ring.yaml``), one after t
   the episodes end (``reset_ms_p50``: median time of those resets, the training stream's
   unseeded resets);
 * ``learner``: our DQN learner alone, ``observe`` + ``learn`` (one gradient step, DER with
-  lambda 0.9, batch 128, the ring MLP 23-256-3) per call, on a DER buffer filled with the
+  lambda 0.9, batch 128, the ring MLP 29-256-3) per call, on a DER buffer filled with the
   transitions of the ``env`` run and warmed up until H2 holds promoted transitions;
 * ``limit = 1 / (1/env + 1/learner)``: what a loop that did nothing but these two would reach;
 * ``loop``: our training loop, ``der_ros.train.runner.train`` with ring.yaml (DER lambda 0.9,
   one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the final
   checkpoint off);
+* ``loop_eval``: the same loop with greedy evaluations running beside it as in training
+  (``ProcessEvaluator``: every 1,000 steps, 50 episodes each, in a second process with its own
+  simulation; the final evaluation off): ``eval_cost = 1 - loop_eval / loop`` is what evaluating
+  costs the training loop on this machine (the second process competes for the two cores);
 * ``sb3_loop``: Stable-Baselines3 ``DQN.learn`` on the same environment (same gym id and
   scenario) with the same network (one hidden layer of 256, ReLU), batch 128, buffer 50,000,
   learning_starts, train_freq 1, gradient_steps 1, target update interval, epsilon schedule,
@@ -62,8 +66,10 @@ from der_ros.train.runner import train  # noqa: E402
 RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
 
 
-def ring_config(steps: int) -> ExperimentConfig:
-    """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint/evaluation."""
+def ring_config(steps: int, evaluate: bool = False) -> ExperimentConfig:
+    """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint;
+    no evaluation, or (``evaluate``) 50 greedy episodes every 1,000 steps in a second process."""
+    evaluation = {"train.eval_interval": 1000, "train.eval_episodes": 50} if evaluate else {}
     return load_experiment_config(
         RING_YAML,
         {
@@ -80,6 +86,8 @@ def ring_config(steps: int) -> ExperimentConfig:
             # process) would count as loop time
             "train.eval_interval": 0,
             "train.final_eval_episodes": 0,
+            "agent.gradient_steps": 1,
+            **evaluation,
         },
     )
 
@@ -207,6 +215,7 @@ def main() -> int:
     steps = args.steps or (1_500 if args.quick else 4_000)
     repeats = args.repeats or (1 if args.quick else 3)
     cfg = ring_config(steps)
+    eval_cfg = ring_config(steps, evaluate=True)
     if steps <= cfg.agent.learning_starts + 200:
         parser.error(f"--steps = {steps}, expected more than learning_starts + 200 = {cfg.agent.learning_starts + 200}")
 
@@ -232,16 +241,18 @@ def main() -> int:
         keep(best, "loop", loop)
         keep(cpu, "loop", loop_cpu)
         keep(whole, "loop", loop_whole)
+        loop_eval, _eval_cpu, _eval_whole, _ = our_loop(eval_cfg)
+        keep(best, "loop_eval", loop_eval)
         sb3, sb3_cpu, sb3_whole = sb3_loop(cfg)
         keep(best, "sb3", sb3)
         keep(cpu, "sb3", sb3_cpu)
         keep(whole, "sb3", sb3_whole)
-        rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "sb3": sb3, "env_cpu": env_cpu,
+        rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_eval": loop_eval, "sb3": sb3, "env_cpu": env_cpu,
                        "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
         print(
             f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
             f"(reset p50 {1e3 * float(np.median(resets)):.2f} ms over {len(resets)})  learner {learner_ps:.0f} / "
-            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  sb3 {sb3:.0f} / {sb3_cpu:.0f}",
+            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  loop+eval {loop_eval:.0f}  sb3 {sb3:.0f} / {sb3_cpu:.0f}",
             file=sys.stderr,
             flush=True,
         )
@@ -266,6 +277,8 @@ def main() -> int:
         "reset_ms_mean": round(1e3 * float(np.mean(resets_all)), 3),
         "ratio_loop_vs_sb3": paired("loop", lambda r: r["sb3"]),
         "ratio_loop_vs_limit": paired("loop", limit),
+        "loop_eval_per_s": round(best["loop_eval"], 1),
+        "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop"]), 3),
         "loop_per_cpu_s": round(cpu["loop"], 1),
         "sb3_loop_per_cpu_s": round(cpu["sb3"], 1),
         "env_per_cpu_s": round(cpu["env"], 1),
