@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import ast
+import time
 from pathlib import Path
 
 import pytest
 
 from der_ros.configuration import ConfigError
 from der_ros.nodes.spin import make_executor
+from ros_harness import ros_domain  # noqa: F401 (fixture)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -50,3 +52,35 @@ def test_no_node_on_the_events_executor_takes_message_info() -> None:
     tree = ast.parse(source)
     bridge = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_on_command")
     assert [a.arg for a in bridge.args.args] == ["self", "data"]
+
+
+@pytest.mark.parametrize("mode", ["lockstep", "free_run"])
+def test_the_command_path_starts_and_steps_the_bridge_when_its_timers_are_late(ros_domain: int, mode: str) -> None:
+    """A flood of commands can delay the EventsExecutor's timers without bound (its event queue is FIFO):
+    the bridge then never ran its start-up check (test_adversarial's flood test, under load). Here no
+    executor spins at all, so no timer ever fires, and stray commands alone must start the run and step
+    it: by the free-run tick, or in lockstep by the timeout checked at each command."""
+    import rclpy
+    from rclpy.serialization import serialize_message
+
+    from der_ros.nodes import msg_conversions as mc
+    from der_ros.nodes.bridge_node import BridgeNode
+
+    params = {"mode": mode, "wait_for_agent": 0.2, "command_timeout": 0.1, "real_time_factor": 5.0, "markers": False}
+    args = ["--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={str(v).lower()}")]
+    rclpy.init(args=args, domain_id=ros_domain)
+    try:
+        node = BridgeNode()
+        try:
+            stray = serialize_message(mc.make_command(10**9, 1, "stray-commander"))
+            deadline = time.monotonic() + 20.0
+            while node.sim_steps < 3 and time.monotonic() < deadline:
+                node._on_command(stray)
+                time.sleep(0.02)
+            assert node.episode >= 0, "the run never started"
+            assert node.sim_steps >= 3
+        finally:
+            node.env.close()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

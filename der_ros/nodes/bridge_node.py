@@ -27,6 +27,13 @@ Modes
     A timer steps the simulation every ``step_seconds / real_time_factor`` wall seconds with
     the latest valid command received since the previous step (default action if none).
 
+Timers under a flood: the node spins on rclpy's EventsExecutor (``nodes/spin.py``), whose event
+queue is FIFO and unbounded; a publisher flooding ``lane_change_cmd`` faster than the events are
+handled would delay every timer behind its backlog without bound (the start-up check never ran and
+the simulation never began). So the timers' work is also done, when due, at the end of every
+command callback (:meth:`BridgeNode._run_overdue`): the start-up check, the free-run tick, and (per
+command, see lockstep) the timeout. Without a flood the timers do it, as before.
+
 Bad input never stops the simulation: a rejected command is counted, logged (throttled) and
 reported on ``bridge/diagnostics`` (DiagnosticArray, also carrying the round-trip latency
 percentiles: state published -> its command received, measured here).
@@ -115,6 +122,10 @@ class LatencyStats:
         return {"roundtrip_p50_ms": float(p50), "roundtrip_p99_ms": float(p99), "roundtrip_n": float(len(self))}
 
 
+#: seconds between start-up checks (the graph must look ready on 4 consecutive ones)
+_STARTUP_CHECK_S = 0.05
+
+
 def parameter_sections() -> dict[str, Any]:
     """Prefix -> default config of every parameter section of this node (for YAML tooling)."""
     return node_configs.parameter_sections("bridge_node")
@@ -155,7 +166,11 @@ class BridgeNode(Node):
                                                 autostart=False)
         self._deadline = float("inf")  # time.monotonic() by which the open step's command must be judged (lockstep)
         self._run_timer = None
-        self._startup_timer = self.create_timer(0.05, self._maybe_start, clock=steady)
+        self._started = False
+        self._next_startup_check = 0.0  # time.monotonic() of the next start-up check
+        self._tick_period = float("inf")  # free_run: wall seconds between steps
+        self._last_tick = -float("inf")
+        self._startup_timer = self.create_timer(_STARTUP_CHECK_S, self._maybe_start, clock=steady)
         self._startup_deadline = time.monotonic() + self.cfg.wait_for_agent
         self._ready_ticks = 0
 
@@ -191,6 +206,9 @@ class BridgeNode(Node):
 
     # -- start-up --------------------------------------------------------------------------------
     def _maybe_start(self) -> None:
+        if self._started:
+            return
+        self._next_startup_check = time.monotonic() + _STARTUP_CHECK_S
         ready = (
             self.count_subscribers(STATE) >= self.cfg.min_subscribers
             and self.count_subscribers(REWARD) >= self.cfg.min_subscribers
@@ -203,14 +221,17 @@ class BridgeNode(Node):
         if self._ready_ticks < 4 and time.monotonic() < self._startup_deadline:
             return
         ready = self._ready_ticks >= 4
+        self._started = True
         self._startup_timer.cancel()
         if not ready:
             self.get_logger().warning("no agent found on the graph; starting anyway (default actions on timeout)")
         self._t_start = time.perf_counter()
         self._start_episode()
         if self.cfg.mode == "free_run":
-            period = self.env.step_seconds / self.cfg.real_time_factor
-            self._run_timer = self.create_timer(period, self._on_tick, clock=RclClock(clock_type=ClockType.STEADY_TIME))
+            self._tick_period = self.env.step_seconds / self.cfg.real_time_factor
+            self._last_tick = time.monotonic()
+            self._run_timer = self.create_timer(self._tick_period, self._on_tick,
+                                                clock=RclClock(clock_type=ClockType.STEADY_TIME))  # fmt: skip
 
     # -- stepping --------------------------------------------------------------------------------
     def _stamp(self) -> int:
@@ -292,6 +313,18 @@ class BridgeNode(Node):
         self._judge_command(data)
         for queued in take_queued(self._cmd_sub, self.cfg.command_queue_depth):  # the rest of the queue, now
             self._judge_command(queued)
+        self._run_overdue()
+
+    def _run_overdue(self) -> None:
+        """The timers' work that is due now: a command flood can delay the timers themselves (module docstring)."""
+        if self.finished:
+            return
+        now = time.monotonic()
+        if not self._started:
+            if now >= self._next_startup_check:
+                self._maybe_start()
+        elif self.cfg.mode == "free_run" and now >= self._last_tick + self._tick_period:
+            self._on_tick()
 
     def _judge_command(self, data: bytes) -> None:
         if self.finished:
@@ -357,6 +390,10 @@ class BridgeNode(Node):
     def _on_tick(self) -> None:
         if self.finished:
             return
+        now = time.monotonic()
+        if now < self._last_tick + 0.5 * self._tick_period:  # stepped from the command path a moment ago
+            return
+        self._last_tick = now
         if self.gate.open_key is not None:
             self._sent_at.pop(self.gate.open_key, None)
         self._step(self.gate.take_latest())
