@@ -7,10 +7,10 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_harness import ros_domain  # noqa: F401 (fixture)
 
 from der_ros.configuration import ConfigError
 from der_ros.nodes.spin import make_executor
-from ros_harness import ros_domain  # noqa: F401 (fixture)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,7 +55,7 @@ def test_no_node_on_the_events_executor_takes_message_info() -> None:
 
 
 @pytest.mark.parametrize("mode", ["lockstep", "free_run"])
-def test_the_command_path_starts_and_steps_the_bridge_when_its_timers_are_late(ros_domain: int, mode: str) -> None:
+def test_the_command_path_starts_and_steps_the_bridge_when_its_timers_are_late(ros_domain: int, mode: str) -> None:  # noqa: F811
     """A flood of commands can delay the EventsExecutor's timers without bound (its event queue is FIFO):
     the bridge then never ran its start-up check (test_adversarial's flood test, under load). Here no
     executor spins at all, so no timer ever fires, and stray commands alone must start the run and step
