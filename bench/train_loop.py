@@ -12,10 +12,12 @@ In one process, on the default ring scenario (``config/ring.yaml``), one after t
 * ``loop``: our training loop, ``der_ros.train.runner.train`` with ring.yaml (DER lambda 0.9,
   one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the final
   checkpoint off);
-* ``loop_eval``: the same loop with greedy evaluations running beside it as in training
-  (``ProcessEvaluator``: every 1,000 steps, 50 episodes each, in a second process with its own
-  simulation; the final evaluation off): ``eval_cost = 1 - loop_eval / loop`` is what evaluating
-  costs the training loop on this machine (the second process competes for the two cores);
+* ``loop_eval``: the same loop with the greedy evaluations of config/ring.yaml running beside it
+  (``ProcessEvaluator``: at step 0 and every 2,500 steps, 50 episodes each, in a second process with
+  its own simulation; the final 300-episode evaluation off). ``eval_cost = 1 - loop_eval /
+  loop``, both measured between the first episode end after learning starts and the last one, is
+  what evaluating costs the training steps on this machine (the second process competes for the two
+  cores); ``eval_wait_s`` is how much longer train() then waits for evaluations still running;
 * ``sb3_loop``: Stable-Baselines3 ``DQN.learn`` on the same environment (same gym id and
   scenario) with the same network (one hidden layer of 256, ReLU), batch 128, buffer 50,000,
   learning_starts, train_freq 1, gradient_steps 1, target update interval, epsilon schedule,
@@ -68,8 +70,8 @@ RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
 
 def ring_config(steps: int, evaluate: bool = False) -> ExperimentConfig:
     """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint;
-    no evaluation, or (``evaluate``) 50 greedy episodes every 1,000 steps in a second process."""
-    evaluation = {"train.eval_interval": 1000, "train.eval_episodes": 50} if evaluate else {}
+    no evaluation, or (``evaluate``) ring.yaml's: 50 greedy episodes every 2,500 steps in a second process."""
+    evaluation = {"train.eval_interval": 2500, "train.eval_episodes": 50} if evaluate else {}
     return load_experiment_config(
         RING_YAML,
         {
@@ -136,9 +138,11 @@ def learner_alone(cfg: ExperimentConfig, transitions: list[tuple[Any, ...]], upd
     return updates / dt, updates / dc
 
 
-def our_loop(cfg: ExperimentConfig) -> tuple[float, float, float, int]:
-    """Decisions per second after learning starts (wall, CPU), of the whole run (wall), and the
-    number of episodes, of runner.train."""
+def our_loop(cfg: ExperimentConfig) -> tuple[float, float, float, int, float, float]:
+    """Decisions per second after learning starts (wall, CPU), of the whole run (wall), the number
+    of episodes, of runner.train; and the training rate between the first episode end after learning
+    starts and the last one (wall: what evaluations running beside it slow down), and the seconds
+    from that last episode end to the return of train() (where it waits for pending evaluations)."""
     marks: list[tuple[float, float, int]] = []
 
     def on_episode(episode: int, step: int, ret: float) -> None:
@@ -149,8 +153,10 @@ def our_loop(cfg: ExperimentConfig) -> tuple[float, float, float, int]:
         summary = train(cfg, run_dir=tmp, on_episode=on_episode)
         t_end, c_end = time.perf_counter(), time.process_time()
     t1, c1, s1 = next(m for m in marks if m[2] >= cfg.agent.learning_starts)
+    t_last, _c_last, s_last = marks[-1]
     n = summary.steps - s1
-    return n / (t_end - t1), n / (c_end - c1), summary.steps / (t_end - t0), summary.episodes
+    training = (s_last - s1) / (t_last - t1)
+    return n / (t_end - t1), n / (c_end - c1), summary.steps / (t_end - t0), summary.episodes, training, t_end - t_last
 
 
 def sb3_loop(cfg: ExperimentConfig) -> tuple[float, float, float]:
@@ -225,6 +231,7 @@ def main() -> int:
     resets_all: list[float] = []
     episodes = 0
     rounds: list[dict[str, float]] = []  # per round: the four wall and CPU rates
+    waits: list[float] = []  # per round: extra seconds train() waited for evaluations at its end
 
     def keep(table: dict[str, float], name: str, value: float) -> None:
         table[name] = max(table.get(name, 0.0), value)
@@ -237,17 +244,19 @@ def main() -> int:
         learner_ps, learner_cpu = learner_alone(cfg, transitions, min(steps, 2_000))
         keep(best, "learner", learner_ps)
         keep(cpu, "learner", learner_cpu)
-        loop, loop_cpu, loop_whole, episodes = our_loop(cfg)
+        loop, loop_cpu, loop_whole, episodes, loop_training, loop_tail = our_loop(cfg)
         keep(best, "loop", loop)
         keep(cpu, "loop", loop_cpu)
         keep(whole, "loop", loop_whole)
-        loop_eval, _eval_cpu, _eval_whole, _ = our_loop(eval_cfg)
+        _, _, _, _, loop_eval, eval_tail = our_loop(eval_cfg)
         keep(best, "loop_eval", loop_eval)
+        waits.append(eval_tail - loop_tail)
         sb3, sb3_cpu, sb3_whole = sb3_loop(cfg)
         keep(best, "sb3", sb3)
         keep(cpu, "sb3", sb3_cpu)
         keep(whole, "sb3", sb3_whole)
-        rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_eval": loop_eval, "sb3": sb3, "env_cpu": env_cpu,
+        rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_training": loop_training,
+                       "loop_eval": loop_eval, "sb3": sb3, "env_cpu": env_cpu,
                        "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
         print(
             f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
@@ -278,7 +287,8 @@ def main() -> int:
         "ratio_loop_vs_sb3": paired("loop", lambda r: r["sb3"]),
         "ratio_loop_vs_limit": paired("loop", limit),
         "loop_eval_per_s": round(best["loop_eval"], 1),
-        "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop"]), 3),
+        "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop_training"]), 3),
+        "eval_wait_s": round(float(np.median(waits)), 3),
         "loop_per_cpu_s": round(cpu["loop"], 1),
         "sb3_loop_per_cpu_s": round(cpu["sb3"], 1),
         "env_per_cpu_s": round(cpu["env"], 1),
