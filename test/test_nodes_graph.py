@@ -98,6 +98,10 @@ def test_bridge_and_agent_train_a_short_episode_sequence(ros_graph, tmp_path):  
         params_file=PARAMS_FILE,
         params={**AGENT_OVERRIDES, "metrics_every": 5, "checkpoint_out": str(ckpt)},
     )
+    # the whole run takes well under a second: the probe must know the agent's metrics publisher before
+    # it starts, or every metrics message may go out before the two have matched (volatile topic)
+    wait_for(lambda: probe.node.count_publishers("agent/metrics") >= 1, 30, what="the agent's metrics publisher",
+             procs=[agent])  # fmt: skip
     bridge = ros_graph.start_node(
         "der_ros.nodes.bridge_node",
         params_file=PARAMS_FILE,

@@ -1,9 +1,9 @@
 """``bridge_node``: the SUMO lane-change simulation as a ROS 2 node (rclpy adapter).
 
 Owns one :class:`sumo_bridge.lane_change_env.LaneChangeEnv` and speaks the "ROS 2 graph
-contract" (:mod:`der_ros.contract`): every step it publishes ``/clock``, ``reward`` (before
-``state``), ``state`` (PointCloud2 of the points), ``ego/odom``, ``scene/vehicles`` (every vehicle as a
-marker, with ``markers`` on) and, on episode start/end, ``episode``; it applies the actions
+contract" (:mod:`der_ros.contract`): every step it publishes ``reward``, ``state`` (PointCloud2 of the
+points), then ``/clock``, ``ego/odom``, ``scene/vehicles`` (every vehicle as a marker, with ``markers``
+on) and, on episode start/end, ``episode``; it applies the actions
 arriving on ``lane_change_cmd``. With ``markers`` on it also publishes the road once on the
 latched ``scene/road``. The markers come from the env's scene (:mod:`sumo_bridge.scene`), encoded
 by :mod:`der_ros.bag.scene_cdr` and published as CDR bytes (a tenth of the cost of building rclpy
@@ -63,6 +63,7 @@ from sensor_msgs.msg import Joy, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
+from der_ros.bag.step_cdr import clock_cdr, odometry_cdr, reward_cdr, state_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -253,20 +254,22 @@ class BridgeNode(Node):
     def _publish_step(
         self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict, applied: int | None
     ) -> None:
-        self.pub_clock.publish(mc.make_clock(stamp))
-        self.pub_reward.publish(mc.make_reward(stamp, reward, terminated, truncated, applied))
+        # CDR bytes (bag/step_cdr.py): reward and state are on the round trip's critical path, so they go
+        # first; /clock, the odometry and the scene follow while the agent computes its answer
+        self.pub_reward.publish(reward_cdr(stamp, reward, terminated, truncated, applied))
         if not (terminated or truncated):
             self.gate.open(stamp)  # open before publishing: a fast answer must find the step open
             self._sent_at[stamp] = time.perf_counter_ns()
             if self.cfg.mode == "lockstep":
                 self._timeout_timer.reset()
                 self._deadline = time.monotonic() + self.cfg.command_timeout
-        self.pub_state.publish(mc.points_to_cloud(info["points"], stamp))
+        self.pub_state.publish(state_cdr(info["points"], stamp))
+        self.pub_clock.publish(clock_cdr(stamp))
         pos = info.get("position")
         if pos is not None:
             speed = float(info["points"][0, self._speed_col])
             self.pub_odom.publish(
-                mc.make_odometry(stamp, pos[0], pos[1], float(info.get("angle", 0.0)), speed, self.cfg.map_frame)
+                odometry_cdr(stamp, pos[0], pos[1], float(info.get("angle", 0.0)), speed, self.cfg.map_frame)
             )
         if self.pub_vehicles is not None:
             self._publish_scene(stamp)
