@@ -6,16 +6,17 @@ an episode wants the whole scene in world coordinates. This module is the core o
 converts a :class:`Scene` to rclpy messages (:mod:`der_ros.nodes.msg_conversions`), offline tools
 to rosbags messages (:mod:`der_ros.bag.messages`), and both read the values from here.
 
-Why subscriptions: reading every vehicle's position with a getter per vehicle costs one call
-(one round trip on traci) per vehicle per step. :class:`~sumo_bridge.lane_change_env.LaneChangeEnv`
-already subscribes each departing vehicle to its speed (the reward's mean speed); with the scene
-enabled it subscribes :data:`SCENE_VARS` instead, so the whole scene comes with the one
-``getAllSubscriptionResults`` call per step the env makes anyway. Only the viewers pay for it:
-the bridge enables it with its ``markers`` parameter, training never does. SUMO evaluates
-subscriptions at every simulation step (5 per decision), about 1 us per variable and vehicle
-(ring, 28 vehicles, shared 2-core machine: 350 us per simulation step with the speed alone, 379 us
-with position and angle, 440 us with length and width too), so the sizes, which never change, are
-asked once per vehicle (the ``size`` callback) instead of subscribed.
+Where the poses come from: on traci a getter per vehicle is a round trip, so
+:class:`~sumo_bridge.lane_change_env.LaneChangeEnv` subscribes every vehicle to :data:`SCENE_VARS`
+(instead of the speed alone, which the reward reads) and the whole scene comes with the one
+``getAllSubscriptionResults`` call per step the env makes anyway. But SUMO evaluates subscriptions
+at every simulation step, five per decision, about 1 us per variable and vehicle (ring, 28
+vehicles, shared 2-core machine: 350 us per simulation step with the speed alone, 379 us with
+position and angle), while the scene is read once per decision; on libsumo, where a getter is an
+in-process call, the env therefore reads position and angle with getters in ``scene()`` and builds
+the same mapping (``bench/graph.py``'s ``scene_*`` figures). Either way only the viewers pay: the
+bridge enables the scene with its ``markers`` parameter, training never does. The sizes, which
+never change, are asked once per vehicle (the ``size`` callback).
 
 Vehicles keep their marker id for as long as they exist (:class:`SceneTracker`: a viewer
 interpolates and trails by id); a vehicle that left gets a DELETE (its id in

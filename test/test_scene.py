@@ -79,6 +79,22 @@ def test_ring_markers_are_libsumos_vehicles_with_stable_ids_and_deletes(ring: La
     assert not set(new_ids[vid] for vid in after - before) & set(ids.values())  # a new vehicle never reuses an id
 
 
+def test_ring_markers_on_traci_come_from_subscriptions_and_match_the_simulation() -> None:
+    """On traci (a getter is a round trip) the poses come from the per-vehicle subscriptions, on libsumo
+    from getters once per decision (sumo_bridge/scene.py); both give the simulation's own poses."""
+    env = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=6, backend="traci"))
+    try:
+        env.enable_scene()
+        env.reset(seed=10)
+        env.step(0)
+        assert all(len(var) == 3 for var in env.api.vehicle.getAllSubscriptionResults().values())
+        ids = check_against_libsumo(env, decoded(env.scene()))
+        env.step(1)
+        assert check_against_libsumo(env, decoded(env.scene())) == ids
+    finally:
+        env.close()
+
+
 def test_urban_markers_follow_the_new_ego_of_each_episode() -> None:
     env = LaneChangeEnv(ScenarioConfig.urban(max_episode_steps=3))
     try:
