@@ -24,6 +24,12 @@ import math
 import struct
 from collections.abc import Iterable, Sequence
 
+from der_ros.bag.cdr import ENCAPSULATION as _ENCAPSULATION
+from der_ros.bag.cdr import NS as _NS
+from der_ros.bag.cdr import STAMP as _STAMP
+from der_ros.bag.cdr import U32 as _U32
+from der_ros.bag.cdr import cdr_string as _string
+from der_ros.bag.cdr import stamp_parts
 from der_ros.contract import (
     LANE_COLOUR,
     LANE_NS,
@@ -40,21 +46,11 @@ from der_ros.contract import (
 
 __all__ = ["vehicle_markers_cdr", "road_markers_cdr", "first_stamp_ns"]
 
-_NS = 1_000_000_000
-_ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
-_U32 = struct.Struct("<I").pack
-_STAMP = struct.Struct("<iI").pack  # builtin_interfaces/Time
 _ID_TYPE_ACTION = struct.Struct("<iii").pack
 _POSE_SCALE = struct.Struct("<10d").pack  # position xyz, orientation xyzw, scale xyz
 _COLOUR_LIFETIME_LOCKED = struct.Struct("<4fiIB").pack  # color rgba, lifetime sec/nanosec, frame_locked
 _POINT = struct.Struct("<3d").pack
 _ZEROS = bytes(8)
-
-
-def _string(text: str) -> bytes:
-    """A CDR string: length with the terminating NUL, the UTF-8 bytes, the NUL."""
-    data = text.encode()
-    return _U32(len(data) + 1) + data + b"\0"
 
 
 _EMPTY = _string("")
@@ -130,10 +126,7 @@ _ROLE_TAIL = {role: _COLOUR_LIFETIME_LOCKED(*rgba, 0, 0, 0) + _PRE_TEXT for role
 
 
 def _stamp(stamp_ns: int) -> tuple[int, int]:
-    if stamp_ns < 0:
-        raise ValueError(f"marker stamp = {stamp_ns} ns, expected >= 0")
-    sec, nanosec = divmod(int(stamp_ns), _NS)
-    return sec, nanosec
+    return stamp_parts(stamp_ns, "marker stamp")
 
 
 def vehicle_markers_cdr(vehicles: Iterable[VehicleMarker], removed: Sequence[int], stamp_ns: int,

@@ -22,34 +22,22 @@ from functools import lru_cache
 
 import numpy as np
 
+from der_ros.bag.cdr import ENCAPSULATION as _ENCAPSULATION
+from der_ros.bag.cdr import STAMP as _STAMP
+from der_ros.bag.cdr import U32 as _U32
+from der_ros.bag.cdr import cdr_string as _string
+from der_ros.bag.cdr import pad as _pad
+from der_ros.bag.cdr import stamp_parts
 from der_ros.contract import applied_action_frame
 from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = ["clock_cdr", "reward_cdr", "state_cdr", "odometry_cdr"]
 
-_NS = 1_000_000_000
-_ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
-_U32 = struct.Struct("<I").pack
-_STAMP = struct.Struct("<iI").pack  # builtin_interfaces/Time: int32 sec, uint32 nanosec
 _FLOAT64 = 8  # sensor_msgs/PointField.FLOAT64
 
 
 def _stamp(stamp_ns: int) -> bytes:
-    ns = int(stamp_ns)
-    if ns < 0:
-        raise ValueError(f"time = {ns} ns, expected >= 0")
-    return _STAMP(*divmod(ns, _NS))
-
-
-def _string(text: str) -> bytes:
-    """A CDR string: length with the terminating NUL, the UTF-8 bytes, the NUL."""
-    data = text.encode()
-    return _U32(len(data) + 1) + data + b"\0"
-
-
-def _pad(offset: int, n: int) -> bytes:
-    """Zero bytes that align ``offset`` (counted after the encapsulation) to a multiple of ``n``."""
-    return bytes(-offset % n)
+    return _STAMP(*stamp_parts(stamp_ns))
 
 
 def _header(stamp_ns: int, frame_id: str) -> bytes:
