@@ -48,7 +48,8 @@ def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_pat
 
     recorder_log = (run_dir / "logs" / "recorder_node.log").read_text()
     closed = re.findall(r"bag closed: .*", recorder_log)
-    assert len(tr) == n > 100, (len(tr), n, tr.skipped, bridge, closed)  # what to look at if it ever differs
+    counters = re.findall(r"counters .*", (run_dir / "logs" / "agent_node.log").read_text())  # gaps: agent-side loss
+    assert len(tr) == n > 100, (len(tr), n, tr.skipped, bridge, closed, counters)  # what to look at if it ever differs
     obs, actions, rewards, next_obs, terminated, truncated = stored
     assert np.array_equal(tr.obs, obs) and np.array_equal(tr.next_obs, next_obs)
     assert np.array_equal(tr.actions, actions)
