@@ -246,10 +246,18 @@ def test_seeded_adversary_against_bridge_and_agent(ros_graph, tmp_path: Path) ->
     deep = QoSProfile(depth=1000)
     adv = Adversary(np.random.default_rng(2024), probe.publisher(ct.COMMAND, Joy, deep),
                     probe.publisher(ct.STATE, PointCloud2, deep), probe.publisher(ct.REWARD, Vector3Stamped, deep))
+    # a message published before the node's reader has matched the new writer is lost (volatile durability): wait for
+    # the match on the writer's side, then a moment for the readers' side (CI lost a canary to this once)
+    for pub, who in ((adv.cmd, "the bridge"), (adv.state, "the agent"), (adv.reward, "the agent")):
+        wait_for(lambda pub=pub: pub.get_subscription_count() >= 1, 30, what=f"{who} on {pub.topic_name}", procs=procs)
+    time.sleep(0.5)
     # canaries: one message of each exact category, counted before the attack (the adversary's writers are matched)
     adv.foreign_command(), adv.poisoned_state(), adv.bad_reward()
-    wait_for(lambda: last(diags, "commands/foreign_sender") >= 1 and last(metrics, "agent/bad_state") >= 1
-             and last(metrics, "agent/bad_reward") >= 1, 60, what="the canaries counted", procs=procs)  # fmt: skip
+    canaries = ((diags, "commands/foreign_sender"), (metrics, "agent/bad_state"), (metrics, "agent/bad_reward"))
+    try:
+        wait_for(lambda: all(last(m, key) >= 1 for m, key in canaries), 60, what="the canaries counted", procs=procs)
+    except pytest.fail.Exception as exc:  # say which node missed its canary
+        pytest.fail(f"{exc}: counters now {[(key, last(m, key)) for m, key in canaries]}")
 
     attacks = [adv.foreign_command, adv.garbage_command, adv.poisoned_state, adv.malformed_state, adv.bad_reward,
                adv.out_of_order, adv.flood]
