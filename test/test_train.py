@@ -20,6 +20,7 @@ import yaml
 from der_ros import cli
 from der_ros.agent.config import DQNConfig
 from der_ros.agent.dqn import DQNAgent
+from der_ros.configuration import ConfigError
 from der_ros.replay.config import ReplayConfig
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env
@@ -259,6 +260,23 @@ def test_invalid_override_names_command_line(tmp_path: Path, capsys: pytest.Capt
     assert cli.main(["train", "--config", str(CARTPOLE), "--lam", "1.5", "--run-dir", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "command line" in err and "lam = 1.5" in err
+
+
+def test_overrides_reach_inside_mapping_valued_keys() -> None:
+    """``--set env.kwargs.scenario.time_aware=true`` sets one key deep inside env.kwargs and keeps its siblings;
+    the file's own mapping is not modified; a path through a non-mapping is an error naming the key."""
+    ring = REPO / "config" / "ring.yaml"
+    base = load_experiment_config(ring)
+    cfg = load_experiment_config(ring, ["env.kwargs.scenario.time_aware=true",
+                                        "env.kwargs.scenario.observation.speed_scale=10"])
+    scenario = cfg.env.kwargs["scenario"]
+    assert scenario["time_aware"] is True and scenario["observation"]["speed_scale"] == 10
+    assert scenario["observation"]["neighbour_range"] == base.env.kwargs["scenario"]["observation"]["neighbour_range"]
+    assert {k: v for k, v in scenario.items() if k not in ("time_aware", "observation")} == {
+        k: v for k, v in base.env.kwargs["scenario"].items() if k != "observation"}
+    assert "time_aware" not in load_experiment_config(ring).env.kwargs["scenario"]
+    with pytest.raises(ConfigError, match="scenario.max_episode_steps"):
+        load_experiment_config(ring, {"env.kwargs.scenario.max_episode_steps.x": 1})
 
 
 # ----------------------------------------------------------------------------- environments

@@ -221,6 +221,20 @@ def apply_dotted_overrides(
         sec = out.setdefault(section, {})
         if not isinstance(sec, dict):
             raise ConfigError(f"{source}: section {section!r} is not a mapping")
+        head, _, rest = name.partition(".")
+        if rest and isinstance(sec.get(head), dict):  # inside a mapping-valued key: env.kwargs.scenario.time_aware
+            sec[head] = dict(sec[head])
+            node = sec[head]
+            parts = rest.split(".")
+            for part in parts[:-1]:
+                child = node.get(part, {})
+                if not isinstance(child, dict):
+                    raise ConfigError(f"{source}: {key!r} = {value!r}: {section}.{head}.{part} = {child!r} is not a "
+                                      "mapping")
+                node[part] = dict(child)
+                node = node[part]
+            node[parts[-1]] = value
+            continue
         sec[name] = value
     return out
 
