@@ -12,6 +12,10 @@ In one process, on the default ring scenario (``config/ring.yaml``), one after t
 * ``loop``: our training loop, ``der_ros.train.runner.train`` with ring.yaml (DER lambda 0.9,
   one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the final
   checkpoint off);
+* ``loop_env_process``: the same loop with ``train.env_process: true``: the environment steps in a
+  worker process while the learner runs its gradient step (each action from the weights of one
+  update before, the ROS graph's order; der_ros/train/env_process.py); a checkout without the
+  option skips it (NaN);
 * ``loop_eval``: the same loop with the greedy evaluations of config/ring.yaml running beside it
   (``ProcessEvaluator``: at step 0 and every 2,500 steps, 50 episodes each, in a second process with
   its own simulation; the final 300-episode evaluation off). ``eval_cost = 1 - loop_eval /
@@ -43,8 +47,10 @@ an older checkout (run it from that checkout's directory).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
+import math
 import os
 import sys
 import tempfile
@@ -61,17 +67,25 @@ import torch  # noqa: E402
 torch.set_num_threads(1)
 
 from der_ros.agent.dqn import DQNAgent  # noqa: E402
-from der_ros.train.config import ExperimentConfig, load_experiment_config  # noqa: E402
+from der_ros.train.config import ExperimentConfig, TrainConfig, load_experiment_config  # noqa: E402
 from der_ros.train.envs import make_env_from_config  # noqa: E402
 from der_ros.train.runner import train  # noqa: E402
 
 RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
 
 
-def ring_config(steps: int, evaluate: bool = False) -> ExperimentConfig:
+def has_env_process() -> bool:
+    """Whether this checkout's runner has ``train.env_process`` (older ones: the part is skipped)."""
+    return "env_process" in {f.name for f in dataclasses.fields(TrainConfig)}
+
+
+def ring_config(steps: int, evaluate: bool = False, env_process: bool = False) -> ExperimentConfig:
     """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint;
-    no evaluation, or (``evaluate``) ring.yaml's: 50 greedy episodes every 2,500 steps in a second process."""
+    no evaluation, or (``evaluate``) ring.yaml's: 50 greedy episodes every 2,500 steps in a second process;
+    ``env_process``: the environment in a worker process, overlapping the gradient step."""
     evaluation = {"train.eval_interval": 2500, "train.eval_episodes": 50} if evaluate else {}
+    if env_process:
+        evaluation["train.env_process"] = True
     return load_experiment_config(
         RING_YAML,
         {
@@ -222,6 +236,7 @@ def main() -> int:
     repeats = args.repeats or (1 if args.quick else 3)
     cfg = ring_config(steps)
     eval_cfg = ring_config(steps, evaluate=True)
+    overlap_cfg = ring_config(steps, env_process=True) if has_env_process() else None
     if steps <= cfg.agent.learning_starts + 200:
         parser.error(f"--steps = {steps}, expected more than learning_starts + 200 = {cfg.agent.learning_starts + 200}")
 
@@ -248,6 +263,8 @@ def main() -> int:
         keep(best, "loop", loop)
         keep(cpu, "loop", loop_cpu)
         keep(whole, "loop", loop_whole)
+        overlap = our_loop(overlap_cfg)[0] if overlap_cfg is not None else math.nan
+        keep(best, "overlap", overlap)
         _, _, _, _, loop_eval, eval_tail = our_loop(eval_cfg)
         keep(best, "loop_eval", loop_eval)
         waits.append(eval_tail - loop_tail)
@@ -256,12 +273,13 @@ def main() -> int:
         keep(cpu, "sb3", sb3_cpu)
         keep(whole, "sb3", sb3_whole)
         rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_training": loop_training,
-                       "loop_eval": loop_eval, "sb3": sb3, "env_cpu": env_cpu,
+                       "loop_eval": loop_eval, "overlap": overlap, "sb3": sb3, "env_cpu": env_cpu,
                        "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
         print(
             f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
             f"(reset p50 {1e3 * float(np.median(resets)):.2f} ms over {len(resets)})  learner {learner_ps:.0f} / "
-            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  loop+eval {loop_eval:.0f}  sb3 {sb3:.0f} / {sb3_cpu:.0f}",
+            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  env process {overlap:.0f}  loop+eval {loop_eval:.0f}  "
+            f"sb3 {sb3:.0f} / {sb3_cpu:.0f}",
             file=sys.stderr,
             flush=True,
         )
@@ -286,6 +304,10 @@ def main() -> int:
         "reset_ms_mean": round(1e3 * float(np.mean(resets_all)), 3),
         "ratio_loop_vs_sb3": paired("loop", lambda r: r["sb3"]),
         "ratio_loop_vs_limit": paired("loop", limit),
+        "loop_env_process_per_s": round(best["overlap"], 1),
+        "ratio_env_process_vs_sb3": paired("overlap", lambda r: r["sb3"]),
+        "ratio_env_process_vs_limit": paired("overlap", limit),
+        "ratio_env_process_vs_loop": paired("overlap", lambda r: r["loop"]),
         "loop_eval_per_s": round(best["loop_eval"], 1),
         "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop_training"]), 3),
         "eval_wait_s": round(float(np.median(waits)), 3),

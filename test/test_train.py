@@ -191,13 +191,18 @@ def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
     assert agent.steps == 300 and agent.replay_cfg.kind == "der"
 
 
-def test_ctrl_c_saves_checkpoint_and_resume_finishes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("env_process", [False, True], ids=["in-process", "env-process"])
+def test_ctrl_c_saves_checkpoint_and_resume_finishes(tmp_path: Path, env_process: bool) -> None:
+    """Ctrl-C as a terminal sends it: SIGINT to the whole process group (with the env in a worker, the
+    worker too: it leaves the stop to the trainer and exits when closed; nothing of the group survives)."""
     run_dir = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "der_ros.cli", "train", "--config", str(CARTPOLE), "--replay", "uniform"]
     cmd += ["--steps", "1000000", "--run-dir", str(run_dir), "--set", "agent.hidden_sizes=[32]"]
     cmd += ["--set", "agent.learning_starts=100", "--set", "train.log_interval=50", "--set", "train.tensorboard=false"]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd += ["--set", f"train.env_process={str(env_process).lower()}"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # fmt: skip
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -205,7 +210,7 @@ def test_ctrl_c_saves_checkpoint_and_resume_finishes(tmp_path: Path) -> None:
             if metrics.is_file() and metrics.stat().st_size > 2000:
                 break
             time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)
+        os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -213,6 +218,14 @@ def test_ctrl_c_saves_checkpoint_and_resume_finishes(tmp_path: Path) -> None:
             proc.wait()
     assert proc.returncode == 130, err
     assert "Traceback" not in err
+    deadline = time.monotonic() + 10
+    while True:  # the worker (and the evaluator) exit with the trainer
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, "a process of the run outlived it"
+        time.sleep(0.1)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["interrupted"] and 0 < summary["steps"] < 1_000_000
     stopped = summary["steps"]
@@ -305,8 +318,10 @@ def test_make_env_kinds() -> None:
         make_env("NoSuchEnv-v0", seed=0)
 
 
-def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
-    """`der_ros/...` ids go through make_env (importing sumo_bridge); a short DER run on the ring."""
+@pytest.mark.parametrize("env_process", [False, True], ids=["in-process", "env-process"])
+def test_runner_on_sumo_ring_env(tmp_path: Path, env_process: bool) -> None:
+    """`der_ros/...` ids go through make_env (importing sumo_bridge); a short DER run on the ring, with the
+    simulation in the trainer's process or in a worker (then three processes: trainer, env, evaluator)."""
     cfg = load_experiment_config(
         None,
         small_overrides(
@@ -317,6 +332,7 @@ def test_runner_on_sumo_ring_env(tmp_path: Path) -> None:
                 "train.eval_interval": 60,
                 "train.eval_episodes": 1,
                 "train.final_eval_episodes": 2,
+                "train.env_process": env_process,
             },
         ),
     )

@@ -88,6 +88,13 @@ class TrainConfig:
     )
     device: str = param("auto", "torch device: auto (cuda when present), cpu or cuda", choices=("auto", "cpu", "cuda"))
     threads: int = param(1, "torch intra-op threads (1 is fastest for small networks and fair on shared cores)", low=1)
+    env_process: bool = param(
+        False,
+        "step the environment in its own process while the learner runs its gradient step (about max(env, "
+        "learner) per step on two cores instead of their sum); each action then comes from the weights of one "
+        "gradient step before, the order of the ROS graph (der_ros/train/env_process.py). False: act, step, "
+        "observe, learn in turn",
+    )
     run_dir: str | None = param(None, "output folder; None = runs/<env>-<replay>-<seed>-<timestamp> under runs_root")
     runs_root: str = param("runs", "parent folder of generated run directories")
     log_interval: int = param(

@@ -40,6 +40,7 @@ import torch
 
 from der_ros.agent.dqn import DQNAgent, resolve_device
 from der_ros.train.config import ExperimentConfig, save_experiment_config
+from der_ros.train.env_process import EnvProcess
 from der_ros.train.envs import make_env_from_config, obs_spec
 from der_ros.train.evaluation import (
     EVALUATIONS_CSV,
@@ -222,7 +223,7 @@ def _train(
     run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
     # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
     # runs before the run directory is created: a failed start writes nothing.
-    env = make_env_from_config(cfg.env, t_cfg.seed)
+    env: Any = EnvProcess(cfg.env, t_cfg.seed) if t_cfg.env_process else make_env_from_config(cfg.env, t_cfg.seed)
     cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
     obs_shape, obs_dtype = obs_spec(env)
     n_actions = int(env.action_space.n)
@@ -251,8 +252,11 @@ def _train(
         wall_offset = float(runner["wall_time"])
         acc.load_state_dict(runner["accumulator"])
         if point.env_bytes is not None:
-            env.close()
-            env = pickle.loads(point.env_bytes)
+            if isinstance(env, EnvProcess):
+                env.load(point.env_bytes)
+            else:
+                env.close()
+                env = pickle.loads(point.env_bytes)
             obs = np.asarray(runner["obs"])
         else:
             obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
@@ -328,12 +332,13 @@ def _train(
                 "accumulator": acc.state_dict(),
                 "obs": np.array(obs, copy=True),
             },
-            "env": _try_pickle_env(env),
+            "env": env.pickled() if isinstance(env, EnvProcess) else _try_pickle_env(env),
             "config": cfg.to_dict(),
         }
         writer.flush()
         return agent.save(run_path / CHECKPOINT_NAME, extra=extra)
 
+    overlap = isinstance(env, EnvProcess)
     try:
         with _StopFlag() as stop:
             if redo_eval:
@@ -341,15 +346,21 @@ def _train(
                 evaluate_now(t_cfg.eval_episodes)
             while agent.steps < t_cfg.total_steps:
                 action = agent.act(obs)
-                next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
-                metrics = agent.learn()
+                if overlap:  # the gradient step runs while the worker simulates (module env_process)
+                    env.step_async(action)
+                    metrics = agent.learn()
+                    next_obs, reward, terminated, truncated, info, reset = env.step_wait()
+                    agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+                else:
+                    next_obs, reward, terminated, truncated, info = env.step(action)
+                    agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+                    metrics = agent.learn()
                 if metrics:
                     acc.add(metrics)
                 if "episode" in info:
                     record_episode(info)
                 if terminated or truncated:
-                    next_obs, reset_info = env.reset()
+                    next_obs, reset_info = reset if overlap else env.reset()
                     if "episode" in reset_info:
                         record_episode(reset_info)
                 obs = next_obs

@@ -1,0 +1,184 @@
+"""The training environment in its own process, so the simulation and the gradient step overlap.
+
+``train.env_process: true`` runs the environment here: the trainer sends the action, runs its
+gradient step while the worker simulates, then takes the result. On a machine with two cores the
+step costs about ``max(env step, learner step)`` instead of their sum. The one difference from
+the sequential loop is the order: each action comes from the weights of one gradient step
+before (the update of step t runs while step t is simulated), which is exactly the order of the
+ROS graph, where the agent node answers the bridge first and learns while it steps.
+
+Protocol (one ``multiprocessing`` pipe, pickled tuples): ``("reset", seed)`` -> ``(obs, info)``;
+``("step", action)`` -> ``(obs, reward, terminated, truncated, info, reset)`` where ``reset`` is
+``(obs, info)`` of the reset that follows a finished episode (done in the worker, before the
+answer) or None; ``("pickle",)`` / ``("load", bytes)`` for the runner's checkpoints; ``("close",)``.
+An exception in the worker comes back as ``("error", (type name, text))`` and is raised in the
+trainer (a ``ConfigError`` as one, anything else as a ``RuntimeError`` with the worker's traceback); a dead
+worker is a ``RuntimeError`` naming its exit code. The worker ignores SIGINT (Ctrl-C is the
+trainer's to handle: it stops at a step boundary and closes the worker) and exits when the
+trainer goes away.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import pickle
+import signal
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+
+from der_ros.configuration import ConfigError
+
+__all__ = ["EnvProcess"]
+
+
+#: how long a side polls the pipe before it blocks: a blocked reader costs a wake-up on every message
+#: (~120 us each way on the 2-core VM of bench/README.md, 236 us per round trip; polled: 90 us)
+SPIN_SECONDS = 0.002
+
+
+def _wait(conn: Any, spin: float = SPIN_SECONDS) -> None:
+    """Return when ``conn`` has a message: poll for ``spin`` seconds, then block."""
+    end = time.perf_counter() + spin
+    while not conn.poll():
+        if time.perf_counter() > end:
+            conn.poll(None)
+            return
+
+
+def _serve(conn: Any, env_cfg: Any, seed: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from der_ros.train.envs import make_env_from_config
+    from der_ros.train.runner import _try_pickle_env
+
+    env = None
+    try:
+        try:
+            env = make_env_from_config(env_cfg, seed)
+            conn.send(("ok", (env.observation_space, env.action_space)))
+        except Exception as exc:  # noqa: BLE001 - reported to the trainer
+            conn.send(("error", (type(exc).__name__, str(exc))))
+            return
+        while True:
+            try:
+                _wait(conn)
+                msg = conn.recv()
+            except EOFError:  # the trainer is gone
+                return
+            kind = msg[0]
+            try:
+                if kind == "step":
+                    obs, reward, terminated, truncated, info = env.step(msg[1])
+                    reset = env.reset() if terminated or truncated else None
+                    conn.send(("ok", (obs, reward, terminated, truncated, info, reset)))
+                elif kind == "reset":
+                    conn.send(("ok", env.reset(seed=msg[1])))
+                elif kind == "pickle":
+                    conn.send(("ok", _try_pickle_env(env)))
+                elif kind == "load":
+                    env.close()
+                    env = pickle.loads(msg[1])
+                    conn.send(("ok", None))
+                elif kind == "close":
+                    return
+                else:
+                    conn.send(("error", ("ValueError", f"env process: unknown request {kind!r}")))
+            except Exception as exc:  # noqa: BLE001 - reported to the trainer, which raises it
+                conn.send(("error", (type(exc).__name__, f"{exc}\n{traceback.format_exc()}")))
+    finally:
+        if env is not None:
+            env.close()
+        conn.close()
+
+
+class EnvProcess:
+    """A gymnasium-like handle on an environment in a worker process (``step`` split into
+    :meth:`step_async` and :meth:`step_wait`, so the caller works in between)."""
+
+    def __init__(self, env_cfg: Any, seed: int) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, env_cfg, seed), daemon=True, name="der-env")
+        self._proc.start()
+        child.close()
+        self._closed = False
+        self._waiting = False
+        try:
+            self.observation_space, self.action_space = self._answer()
+        except BaseException:
+            self.close()
+            raise
+
+    def _answer(self) -> Any:
+        try:
+            _wait(self._conn)
+            kind, payload = self._conn.recv()
+        except EOFError:
+            self._proc.join(timeout=5)
+            raise RuntimeError(f"the environment process died (exit code {self._proc.exitcode})") from None
+        if kind == "error":
+            name, text = payload
+            if name == "ConfigError":  # a refused config stays a ConfigError (der train: exit 2, nothing written)
+                raise ConfigError(text)
+            raise RuntimeError(f"in the environment process: {name}: {text}")
+        return payload
+
+    def _call(self, *msg: Any) -> Any:
+        if self._waiting:
+            raise RuntimeError("env process: step_wait() was not called after step_async()")
+        self._conn.send(msg)
+        return self._answer()
+
+    def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        return self._call("reset", seed)
+
+    def step_async(self, action: int) -> None:
+        """Start one step; :meth:`step_wait` returns its result."""
+        if self._waiting:
+            raise RuntimeError("env process: step_async() called twice without step_wait()")
+        self._conn.send(("step", action))
+        self._waiting = True
+
+    def step_wait(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any], Any]:
+        """(obs, reward, terminated, truncated, info, reset): ``reset`` is the (obs, info) of the next
+        episode's reset when this step ended one, else None."""
+        if not self._waiting:
+            raise RuntimeError("env process: step_wait() without step_async()")
+        self._waiting = False
+        return self._answer()
+
+    def pickled(self) -> bytes | None:
+        """The environment pickled, when the runner would pickle it in process (else None)."""
+        return self._call("pickle")
+
+    def load(self, data: bytes) -> None:
+        """Replace the worker's environment with an unpickled one (a resumed checkpoint)."""
+        self._call("load", data)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._waiting and self._conn.poll(30):  # a step still out (the trainer failed meanwhile)
+                self._conn.recv()
+            if self._proc.is_alive():
+                self._conn.send(("close",))
+        except (BrokenPipeError, EOFError, OSError):
+            pass
+        self._proc.join(timeout=30)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout=5)
+        self._conn.close()
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    def __repr__(self) -> str:
+        return f"EnvProcess(pid={self._proc.pid}, alive={self._proc.is_alive()}, parent={os.getpid()})"
+
