@@ -28,9 +28,11 @@ roundtrip_p50_ms, roundtrip_p99_ms (training graph, markers on), the same for th
 markers (no_markers_*), eval_roundtrip_p50_ms/p99_ms, the eval graph's steps/s, episode counts.
 Targets: graph >= 60% of in-process (the README's reference run: 0.85), round-trip p50 <= 1 ms.
 
-``--pairs N`` runs the graphs without and with markers N times each, in ABBA order (off-on, on-off,
-...), and reports the median run of each and the cost within each pair (``markers_cost_pairs``:
-1 - on/off; one pair on a loaded machine can be off by 30% either way).
+``--pairs N`` runs the in-process loop and the graphs without and with markers N times each, the
+graphs in ABBA order (off-on, on-off, ...), and reports the median run of each (``graph_ratio``:
+median graph over median in-process; ``graph_ratio_pairs`` within each pair) and the markers' cost
+within each pair (``markers_cost_pairs``: 1 - on/off; one pair on a loaded machine can be off by 30%
+either way).
 
     .venv/bin/python bench/graph.py [--steps 3000] [--quick] [--record] [--pairs N]
 """
@@ -234,18 +236,22 @@ def main() -> int:
     workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
     scene = scene_cost(400 if args.quick else 1000)
     print(f"scene markers in one process (ring): {json.dumps(scene)}", file=sys.stderr)
-    inproc, inproc_episodes = run_inprocess(steps, overrides)
-    print(f"in-process: {inproc:.1f} steps/s, {inproc_episodes} episodes", file=sys.stderr)
-    plains, graphs = [], []
+    plains, graphs, inprocs = [], [], []
+    inproc_episodes = 0
     for pair in range(max(1, args.pairs)):
         pair_dir = workdir / f"pair{pair}"
         pair_dir.mkdir()
+        # the peer once per pair too: one in-process run moved 465-620 steps/s between sessions
+        rate, inproc_episodes = run_inprocess(steps, overrides)
+        inprocs.append(rate)
+        print(f"in-process: {rate:.1f} steps/s, {inproc_episodes} episodes", file=sys.stderr)
         # off-on, on-off, off-on, ...: neither variant always runs first (ABBA order)
         for markers in (False, True) if pair % 2 == 0 else (True, False):
             run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=markers, record=args.record)
             (graphs if markers else plains).append(run)
             print(f"graph (training, markers {'on' if markers else 'off'}): {json.dumps(run)}", file=sys.stderr)
     plain, graph = _median_run(plains), _median_run(graphs)
+    inproc = sorted(inprocs)[len(inprocs) // 2]
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
     print(f"graph (evaluation mode): {json.dumps(graph_eval)}", file=sys.stderr)
     result = {
@@ -253,6 +259,8 @@ def main() -> int:
         "steps": steps,
         "graph_steps_per_s": round(graph["steps_per_s"], 1),
         "inprocess_steps_per_s": round(inproc, 1),
+        "inprocess_steps_per_s_runs": [round(r, 1) for r in inprocs],
+        "graph_ratio_pairs": [round(g["steps_per_s"] / r, 3) for g, r in zip(graphs, inprocs)],
         "graph_ratio": round(graph["steps_per_s"] / inproc, 3),
         "roundtrip_p50_ms": round(graph["roundtrip_p50_ms"], 3),
         "roundtrip_p99_ms": round(graph["roundtrip_p99_ms"], 3),
