@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from der_ros.configuration import ConfigError
+from der_ros.train.envs import make_env_from_config, pickle_env_state
 
 __all__ = ["EnvProcess"]
 
@@ -51,9 +52,6 @@ def _wait(conn: Any, spin: float = SPIN_SECONDS) -> None:
 
 def _serve(conn: Any, env_cfg: Any, seed: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from der_ros.train.envs import make_env_from_config
-    from der_ros.train.runner import _try_pickle_env
-
     env = None
     try:
         try:
@@ -77,7 +75,7 @@ def _serve(conn: Any, env_cfg: Any, seed: int) -> None:
                 elif kind == "reset":
                     conn.send(("ok", env.reset(seed=msg[1])))
                 elif kind == "pickle":
-                    conn.send(("ok", _try_pickle_env(env)))
+                    conn.send(("ok", pickle_env_state(env)))
                 elif kind == "load":
                     env.close()
                     env = pickle.loads(msg[1])

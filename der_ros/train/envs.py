@@ -18,6 +18,7 @@ Atari stack (paper section 5: grey, 84x84, 4 stacked frames; DQN conventions for
 from __future__ import annotations
 
 import logging
+import pickle
 from typing import Any
 
 import gymnasium as gym
@@ -26,7 +27,7 @@ import numpy as np
 import sumo_bridge  # noqa: F401  (registers the der_ros/* SUMO ids with gymnasium)
 from der_ros.configuration import ConfigError
 
-__all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife"]
+__all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife", "pickle_env_state"]
 
 log = logging.getLogger(__name__)
 
@@ -187,3 +188,19 @@ def obs_spec(env: gym.Env) -> tuple[tuple[int, ...], np.dtype]:
     if not isinstance(space, gym.spaces.Box):
         raise ValueError(f"observation space {space}, expected a Box")
     return tuple(int(s) for s in space.shape), np.dtype(space.dtype)
+
+
+def pickle_env_state(env: gym.Env) -> bytes | None:
+    """The whole environment pickled, for envs whose state is plain Python/numpy (gymnasium's own).
+
+    Others are not pickled even when pickle would not fail: an unpickled ALE env does not continue
+    the same frames, and a libsumo env would lose its simulation. Those resume with a new episode.
+    """
+    module = type(env.unwrapped).__module__
+    if not module.startswith("gymnasium.envs.") or getattr(env.unwrapped, "ale", None) is not None:
+        return None
+    try:
+        return pickle.dumps(env, protocol=4)
+    except Exception as exc:  # noqa: BLE001 - any env that cannot pickle falls back to a reset
+        log.debug("environment state not saved (%s); a resumed run starts a new episode", exc)
+        return None

@@ -34,14 +34,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 
 from der_ros.agent.dqn import DQNAgent, resolve_device
 from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.env_process import EnvProcess
-from der_ros.train.envs import make_env_from_config, obs_spec
+from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
 from der_ros.train.evaluation import (
     EVALUATIONS_CSV,
     FINAL_EVAL_JSON,
@@ -125,22 +124,6 @@ class _StopFlag:
     def __exit__(self, *exc: Any) -> None:
         for sig, previous in self._previous.items():
             signal.signal(sig, previous)
-
-
-def _try_pickle_env(env: gym.Env) -> bytes | None:
-    """The whole environment pickled, for envs whose state is plain Python/numpy (gymnasium's own).
-
-    Others are not pickled even when pickle would not fail: an unpickled ALE env does not continue
-    the same frames, and a libsumo env would lose its simulation. Those resume with a new episode.
-    """
-    module = type(env.unwrapped).__module__
-    if not module.startswith("gymnasium.envs.") or getattr(env.unwrapped, "ale", None) is not None:
-        return None
-    try:
-        return pickle.dumps(env, protocol=4)
-    except Exception as exc:  # noqa: BLE001 - any env that cannot pickle falls back to a reset
-        log.debug("environment state not saved (%s); a resumed run starts a new episode", exc)
-        return None
 
 
 class _Progress:
@@ -332,7 +315,7 @@ def _train(
                 "accumulator": acc.state_dict(),
                 "obs": np.array(obs, copy=True),
             },
-            "env": env.pickled() if isinstance(env, EnvProcess) else _try_pickle_env(env),
+            "env": env.pickled() if isinstance(env, EnvProcess) else pickle_env_state(env),
             "config": cfg.to_dict(),
         }
         writer.flush()
