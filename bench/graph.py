@@ -279,6 +279,9 @@ def main() -> int:
         "graph_episodes": int(graph["episodes_started"]),
         "inprocess_episodes": inproc_episodes,
         "graph_bridge_busy_fraction": round(graph["busy_fraction"], 3),
+        # of which the env step and publishing the step (older bridges do not report them: NaN)
+        "graph_bridge_env_step_fraction": round(graph.get("env_step_fraction", float("nan")), 3),
+        "graph_bridge_publish_fraction": round(graph.get("publish_fraction", float("nan")), 3),
         "eval_graph_steps_per_s": round(graph_eval["steps_per_s"], 1),
         "eval_roundtrip_p50_ms": round(graph_eval["roundtrip_p50_ms"], 3),
         "eval_roundtrip_p99_ms": round(graph_eval["roundtrip_p99_ms"], 3),

@@ -9,17 +9,20 @@ In one process, on the default ring scenario (``config/ring.yaml``), one after t
   lambda 0.9, batch 128, the ring MLP 29-256-3) per call, on a DER buffer filled with the
   transitions of the ``env`` run and warmed up until H2 holds promoted transitions;
 * ``limit = 1 / (1/env + 1/learner)``: what a loop that did nothing but these two would reach;
-* ``loop``: our training loop, ``der_ros.train.runner.train`` with ring.yaml (DER lambda 0.9,
-  one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the final
-  checkpoint off);
-* ``loop_env_process``: the same loop with ``train.env_process: true``: the environment steps in a
-  worker process while the learner runs its gradient step (each action from the weights of one
-  update before, the ROS graph's order; der_ros/train/env_process.py); a checkout without the
-  option skips it (NaN);
-* ``loop_eval``: the same loop with the greedy evaluations of config/ring.yaml running beside it
+* ``loop``: our training loop as ``der train`` runs it, ``der_ros.train.runner.train`` with ring.yaml
+  (DER lambda 0.9, one gradient step per decision; CSV metrics on, TensorBoard, progress bar and the
+  final checkpoint off) and its default ``train.env_process`` (auto: on a machine with two cores or more
+  the environment steps in a worker process while the learner runs its gradient step, with the
+  sequential loop's results bit for bit; der_ros/train/env_process.py);
+* ``loop_sequential``: the same loop with ``train.env_process: false`` (act, step, observe, learn in
+  turn in one process; before 2026-12-02 the default, and what ``loop`` measured then); a checkout
+  without the option measures its only loop twice;
+* ``loop_eval``: the default loop with the greedy evaluations of config/ring.yaml running beside it
   (``ProcessEvaluator``: at step 0 and every 2,500 steps, 50 episodes each, in a second process with
-  its own simulation; the final 300-episode evaluation off). ``eval_cost = 1 - loop_eval /
-  loop``, both measured between the first episode end after learning starts and the last one, is
+  its own simulation; the final 300-episode evaluation off); ``train.env_process`` auto then wants a
+  third CPU for the env worker, so on two cores this is the sequential loop + the evaluator.
+  ``eval_cost = 1 - loop_eval / (the same loop without evaluations)``, both measured between the
+  first episode end after learning starts and the last one, is
   what evaluating costs the training steps on this machine (the second process competes for the two
   cores); ``eval_wait_s`` is how much longer train() then waits for evaluations still running;
 * ``sb3_loop``: Stable-Baselines3 ``DQN.learn`` on the same environment (same gym id and
@@ -50,7 +53,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import math
 import os
 import sys
 import tempfile
@@ -75,17 +77,30 @@ RING_YAML = Path(__file__).resolve().parent.parent / "config" / "ring.yaml"
 
 
 def has_env_process() -> bool:
-    """Whether this checkout's runner has ``train.env_process`` (older ones: the part is skipped)."""
+    """Whether this checkout's runner has ``train.env_process`` (older ones: one loop only)."""
     return "env_process" in {f.name for f in dataclasses.fields(TrainConfig)}
 
 
-def ring_config(steps: int, evaluate: bool = False, env_process: bool = False) -> ExperimentConfig:
+def default_loop_uses_worker(evaluate: bool = False) -> bool:
+    """Whether ``der train --config config/ring.yaml`` (15,000 steps; evaluations off, or on with
+    ``evaluate``) puts the env in a worker process on this machine (``train.env_process`` auto; older
+    checkouts: no). The loops here are shorter, so the bench sets the choice explicitly."""
+    try:
+        from der_ros.train.env_process import use_env_process
+    except ImportError:
+        return False
+    full = load_experiment_config(RING_YAML, {} if evaluate else {"train.eval_interval": 0})
+    return use_env_process(full.train.env_process, full.env.id, evaluator_process=evaluate,
+                           steps_to_go=full.train.total_steps)
+
+
+def ring_config(steps: int, evaluate: bool = False, env_process: bool | None = None) -> ExperimentConfig:
     """config/ring.yaml with DER lambda 0.9, ``steps`` decisions, CPU, no TensorBoard/progress/checkpoint;
     no evaluation, or (``evaluate``) ring.yaml's: 50 greedy episodes every 2,500 steps in a second process;
-    ``env_process``: the environment in a worker process, overlapping the gradient step."""
-    evaluation = {"train.eval_interval": 2500, "train.eval_episodes": 50} if evaluate else {}
-    if env_process:
-        evaluation["train.env_process"] = True
+    ``env_process``: None = the runner's default, else forced on/off."""
+    evaluation: dict[str, Any] = {"train.eval_interval": 2500, "train.eval_episodes": 50} if evaluate else {}
+    if env_process is not None and has_env_process():
+        evaluation["train.env_process"] = env_process
     return load_experiment_config(
         RING_YAML,
         {
@@ -234,9 +249,11 @@ def main() -> int:
     logging.basicConfig(level=logging.WARNING)
     steps = args.steps or (1_500 if args.quick else 4_000)
     repeats = args.repeats or (1 if args.quick else 3)
-    cfg = ring_config(steps)
-    eval_cfg = ring_config(steps, evaluate=True)
-    overlap_cfg = ring_config(steps, env_process=True) if has_env_process() else None
+    worker = default_loop_uses_worker()
+    cfg = ring_config(steps, env_process=worker)
+    eval_worker = default_loop_uses_worker(evaluate=True)
+    eval_cfg = ring_config(steps, evaluate=True, env_process=eval_worker)
+    sequential_cfg = ring_config(steps, env_process=False)
     if steps <= cfg.agent.learning_starts + 200:
         parser.error(f"--steps = {steps}, expected more than learning_starts + 200 = {cfg.agent.learning_starts + 200}")
 
@@ -263,8 +280,9 @@ def main() -> int:
         keep(best, "loop", loop)
         keep(cpu, "loop", loop_cpu)
         keep(whole, "loop", loop_whole)
-        overlap = our_loop(overlap_cfg)[0] if overlap_cfg is not None else math.nan
-        keep(best, "overlap", overlap)
+        sequential, sequential_cpu, _, _, sequential_training, _ = our_loop(sequential_cfg)
+        keep(best, "sequential", sequential)
+        keep(cpu, "sequential", sequential_cpu)
         _, _, _, _, loop_eval, eval_tail = our_loop(eval_cfg)
         keep(best, "loop_eval", loop_eval)
         waits.append(eval_tail - loop_tail)
@@ -273,12 +291,12 @@ def main() -> int:
         keep(cpu, "sb3", sb3_cpu)
         keep(whole, "sb3", sb3_whole)
         rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_training": loop_training,
-                       "loop_eval": loop_eval, "overlap": overlap, "sb3": sb3, "env_cpu": env_cpu,
+                       "loop_eval": loop_eval, "sequential": sequential, "sequential_training": sequential_training, "sb3": sb3, "env_cpu": env_cpu,
                        "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
         print(
             f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
             f"(reset p50 {1e3 * float(np.median(resets)):.2f} ms over {len(resets)})  learner {learner_ps:.0f} / "
-            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  env process {overlap:.0f}  loop+eval {loop_eval:.0f}  "
+            f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  sequential {sequential:.0f}  loop+eval {loop_eval:.0f}  "
             f"sb3 {sb3:.0f} / {sb3_cpu:.0f}",
             file=sys.stderr,
             flush=True,
@@ -304,12 +322,16 @@ def main() -> int:
         "reset_ms_mean": round(1e3 * float(np.mean(resets_all)), 3),
         "ratio_loop_vs_sb3": paired("loop", lambda r: r["sb3"]),
         "ratio_loop_vs_limit": paired("loop", limit),
-        "loop_env_process_per_s": round(best["overlap"], 1),
-        "ratio_env_process_vs_sb3": paired("overlap", lambda r: r["sb3"]),
-        "ratio_env_process_vs_limit": paired("overlap", limit),
-        "ratio_env_process_vs_loop": paired("overlap", lambda r: r["loop"]),
+        "loop_env_process": worker,
+        "loop_eval_env_process": eval_worker,
+        "loop_sequential_per_s": round(best["sequential"], 1),
+        "ratio_sequential_vs_sb3": paired("sequential", lambda r: r["sb3"]),
+        "ratio_sequential_vs_limit": paired("sequential", limit),
+        "ratio_loop_vs_sequential": paired("loop", lambda r: r["sequential"]),
         "loop_eval_per_s": round(best["loop_eval"], 1),
-        "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop_training"]), 3),
+        # against the same loop without evaluations (the evaluated run may not use the env worker)
+        "eval_cost": round(1.0 - paired("loop_eval", lambda r: r["loop_training" if eval_worker == worker
+                                                                 else "sequential_training"]), 3),
         "eval_wait_s": round(float(np.median(waits)), 3),
         "loop_per_cpu_s": round(cpu["loop"], 1),
         "sb3_loop_per_cpu_s": round(cpu["sb3"], 1),

@@ -25,6 +25,7 @@ import copy
 import logging
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -160,6 +161,13 @@ class DQNAgent:
     ) -> None:
         """Store one transition (s, a, r, s', terminated, truncated) and count one environment step."""
         self.replay.add(obs, action, reward, next_obs, terminated, truncated)
+        self.steps += 1
+
+    def observe_deferred(self, obs: np.ndarray, action: int, complete: Callable[[], tuple[Any, ...]]) -> None:
+        """:meth:`observe` for a step still being simulated: ``complete()`` returns ``(reward, next_obs,
+        terminated, truncated)`` when the replay first needs them (``ReplayBuffer.add_deferred``), so a
+        :meth:`learn` call in between takes the same gradient step as after :meth:`observe`."""
+        self.replay.add_deferred(obs, action, complete)
         self.steps += 1
 
     # ---------------------------------------------------------------- learning

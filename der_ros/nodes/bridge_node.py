@@ -188,6 +188,8 @@ class BridgeNode(Node):
         self.events: dict[str, int] = dict.fromkeys(EPISODE_ENDS, 0)
         self._t_start = time.perf_counter()
         self._busy_s = 0.0
+        self._env_s = 0.0  # of which env.step (the rest: publishing, bookkeeping, episode starts)
+        self._publish_s = 0.0  # of which publishing the step (reward, state, clock, odometry, scene)
         self.get_logger().info(
             f"bridge ready: mode={self.cfg.mode} step={self.env.step_seconds}s scenario={self.scenario}"
         )
@@ -277,6 +279,8 @@ class BridgeNode(Node):
     def _step(self, action: int) -> None:
         t0 = time.perf_counter()
         _obs, reward, terminated, truncated, info = self.env.step(int(action))
+        t_env = time.perf_counter()
+        self._env_s += t_env - t0
         self.sim_steps += 1
         self.k += 1
         stamp = self._stamp()
@@ -288,6 +292,7 @@ class BridgeNode(Node):
             self._ep_lane_changes += 1
         self._lane = lane
         self._publish_step(stamp, float(reward), bool(terminated), bool(truncated), info, int(action))
+        self._publish_s += time.perf_counter() - t_env
         done = self.cfg.max_steps > 0 and self.sim_steps >= self.cfg.max_steps
         if terminated or truncated:
             event = info.get("event") or (EPISODE_TIME_LIMIT if truncated else EPISODE_COLLISION)
@@ -411,6 +416,8 @@ class BridgeNode(Node):
             "episodes_started": float(self.episode + 1),
             "steps_per_s": self.sim_steps / wall,
             "busy_fraction": self._busy_s / wall,
+            "env_step_fraction": self._env_s / wall,
+            "publish_fraction": self._publish_s / wall,
         }
         out.update({f"events/{k}": float(v) for k, v in self.events.items()})
         out.update({f"commands/{k}": float(v) for k, v in self.gate.stats().items()})

@@ -17,12 +17,16 @@ import json
 import os
 import tempfile
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 
 from der_ros.configuration import ConfigError
+
+if TYPE_CHECKING:
+    from der_ros.replay.storage import RingStorage
 
 __all__ = ["Batch", "ReplayBuffer", "STATE_FORMAT", "check_batch_size", "check_td_errors"]
 
@@ -115,6 +119,29 @@ class ReplayBuffer(ABC):
             np.asarray([terminated]),
             np.asarray([truncated]),
         )
+
+    def add_deferred(self, obs: np.ndarray, action: int, complete: Callable[[], tuple[Any, ...]]) -> None:
+        """Store (s_k, a_k) now and the rest of the transition when it is known.
+
+        ``complete()`` returns ``(reward, next_obs, terminated, truncated)``; it is called when a
+        batch first reads the transition, before anything else is written, when the state is
+        saved, or at :meth:`resolve_deferred`, whichever comes first. Sampling, priorities and
+        promotions do not depend on those four fields until a batch holds the transition, so a
+        learner can take its gradient step while the environment still computes them and get,
+        bit for bit, the step it would have taken after an :meth:`add` (``train.env_process``).
+        """
+        self.resolve_deferred()
+        self.add(obs, action, 0.0, obs, False, False)
+        storage, slot = self._newest_slot()
+        storage.defer(slot, complete)
+
+    def resolve_deferred(self) -> None:
+        """Complete the transition of :meth:`add_deferred` now, if it still waits."""
+        self._newest_slot()[0].resolve()
+
+    @abstractmethod
+    def _newest_slot(self) -> tuple[RingStorage, int]:
+        """The storage :meth:`add` writes to and the slot of the last transition it wrote."""
 
     @abstractmethod
     def add_batch(

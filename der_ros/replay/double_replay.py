@@ -200,6 +200,9 @@ class DoubleReplay(ReplayBuffer):
             self.h1_pos[slot] = self.h1_size
             self.h1_size += 1
 
+    def _newest_slot(self) -> tuple[RingStorage, int]:
+        return self.h1, (self.h1.cursor - 1) % self.capacity
+
     # ------------------------------------------------------------------ sampling
     def sample(self, batch_size: int) -> Batch:
         check_batch_size(batch_size, self.capacity + self.h2_capacity, self.h1_size + self.h2_size)
@@ -254,6 +257,7 @@ class DoubleReplay(ReplayBuffer):
             k = self.h2_capacity
         dst = self._h2_slots(k)
         gdst = dst + self.capacity
+        self.store.resolve_among(slots1)  # (a sampled transition was completed when its batch was gathered)
         for arr in self.store.arrays_tuple:
             arr[gdst] = arr.take(slots1, axis=0)
         logw = np.minimum(absd, self.max_log_weight)

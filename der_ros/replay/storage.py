@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -113,6 +114,13 @@ class RingStorage:
         self.cursor = 0
         #: transitions ever written through next_slots (for FIFO order and stats)
         self.num_written = 0
+        #: where this storage's slot 0 lies in the arrays it shares (0; a :meth:`view`'s start)
+        self.offset = 0
+        #: the storage that owns the arrays (itself; a view's: its parent's owner)
+        self._root = self
+        #: the deferred transition of this storage and its views: [(root storage, root row, complete)]
+        #: or [None] (see :meth:`defer`); one list object shared by a storage and all its views
+        self._deferred: list[tuple[RingStorage, int, Callable[[], tuple[Any, ...]]] | None] = [None]
 
     FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated", "truncated")
 
@@ -131,6 +139,9 @@ class RingStorage:
         sub.arrays_tuple = tuple(getattr(sub, name) for name in self.FIELDS)
         sub.cursor = 0
         sub.num_written = 0
+        sub.offset = self.offset + int(start)
+        sub._root = self._root
+        sub._deferred = self._deferred
         return sub
 
     @property
@@ -218,40 +229,86 @@ class RingStorage:
         self.num_written += 1
         return slot
 
+    def _check_one(self, name: str, arr: Any) -> None:
+        a = np.asarray(arr)
+        if a.shape != self.obs_shape:
+            raise ValueError(f"{name} has shape {a.shape}, expected {self.obs_shape}")
+        if a.dtype != self.obs_dtype and not np.can_cast(a.dtype, self.obs_dtype, casting="same_kind"):
+            raise ValueError(f"{name} has dtype {a.dtype}, cannot store it as {self.obs_dtype}")
+
     def put_one(self, slot: int, obs, action, reward, next_obs, terminated, truncated) -> None:
         """Check and write one transition to ``slot`` (the per-step path of ``add``; no batch arrays)."""
-        for name, arr in (("obs", obs), ("next_obs", next_obs)):
-            a = np.asarray(arr)
-            if a.shape != self.obs_shape:
-                raise ValueError(f"{name} has shape {a.shape}, expected {self.obs_shape}")
-            if a.dtype != self.obs_dtype and not np.can_cast(a.dtype, self.obs_dtype, casting="same_kind"):
-                raise ValueError(f"{name} has dtype {a.dtype}, cannot store it as {self.obs_dtype}")
+        if self._deferred[0] is not None:  # the deferred transition is completed before anything is written
+            self.resolve()
+        self._check_one("obs", obs)
+        self._write_outcome(slot, reward, next_obs, terminated, truncated)  # checked before anything is written
+        self.obs[slot] = obs
+        self.actions[slot] = action
+
+    def _write_outcome(self, slot: int, reward, next_obs, terminated, truncated) -> None:
+        """Check, then write, what a step's outcome adds to (s, a): reward, next observation, flags."""
+        self._check_one("next_obs", next_obs)
         reward = float(reward)
         if not math.isfinite(reward):
             raise ValueError(f"reward = {reward}, expected a finite number")
-        self.obs[slot] = obs
         self.next_obs[slot] = next_obs
-        self.actions[slot] = action
         self.rewards[slot] = reward
         self.terminated[slot] = terminated
         self.truncated[slot] = truncated
 
     def write(self, slots: np.ndarray, fields: tuple[np.ndarray, ...]) -> None:
         """Write converted fields (as returned by :meth:`convert` or :meth:`gather`) to ``slots``."""
+        if self._deferred[0] is not None:
+            self.resolve()
         for dst, value in zip(self.arrays_tuple, fields):
             dst[slots] = value
 
     def gather(self, slots: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Copies of every field at ``slots`` (in :attr:`FIELDS` order)."""
+        """Copies of every field at ``slots`` (in :attr:`FIELDS` order); a deferred transition among
+        them is completed first."""
+        if self._deferred[0] is not None:
+            self.resolve_among(slots)
         return tuple(src.take(slots, axis=0) for src in self.arrays_tuple)
+
+    # deferred transition -------------------------------------------------------
+    def defer(self, slot: int, complete: Callable[[], tuple[Any, ...]]) -> None:
+        """Mark ``slot`` (written with placeholders) as waiting for its reward, next observation and
+        flags: ``complete()`` returns ``(reward, next_obs, terminated, truncated)``.
+
+        It is called at the first read of the slot (:meth:`gather`, :meth:`arrays`), before any other
+        write, or by :meth:`resolve`, whichever comes first: whatever reads the storage sees the
+        complete transition, so a learner can sample while the environment is still computing it
+        (``train.env_process``) and get the same batch as if it had waited. One at a time: a pending
+        one is completed first.
+        """
+        self.resolve()
+        self._deferred[0] = (self._root, self.offset + int(slot), complete)
+
+    def resolve(self) -> None:
+        """Complete the deferred transition now (no-op when there is none)."""
+        entry = self._deferred[0]
+        if entry is None:
+            return
+        root, row, complete = entry
+        self._deferred[0] = None
+        root._write_outcome(row, *complete())
+
+    def resolve_among(self, slots: np.ndarray) -> None:
+        """:meth:`resolve` if the deferred transition is at one of ``slots`` (of this storage)."""
+        entry = self._deferred[0]
+        if entry is not None and bool((slots == entry[1] - self.offset).any()):
+            self.resolve()
 
     # state -------------------------------------------------------------------
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        if self._deferred[0] is not None:
+            self.resolve()
         out = {f"{prefix}/{name}": getattr(self, name) for name in self.FIELDS}
         out[f"{prefix}/counters"] = np.array([self.cursor, self.num_written], dtype=np.int64)
         return out
 
     def set_arrays(self, arrays: dict[str, np.ndarray], prefix: str) -> None:
+        self._deferred[0] = None  # the loaded state replaces whatever was waiting
         for name in self.FIELDS:
             getattr(self, name)[...] = arrays[f"{prefix}/{name}"]
         self.cursor, self.num_written = (int(x) for x in arrays[f"{prefix}/counters"])

@@ -47,6 +47,9 @@ class UniformReplay(ReplayBuffer):
         if self.size < self.capacity:
             self.size += 1
 
+    def _newest_slot(self) -> tuple[RingStorage, int]:
+        return self.storage, (self.storage.cursor - 1) % self.capacity
+
     def sample(self, batch_size: int) -> Batch:
         check_batch_size(batch_size, self.capacity, self.size)
         slots = self._rng.integers(0, self.size, batch_size, dtype=np.int64)

@@ -88,12 +88,15 @@ class TrainConfig:
     )
     device: str = param("auto", "torch device: auto (cuda when present), cpu or cuda", choices=("auto", "cpu", "cuda"))
     threads: int = param(1, "torch intra-op threads (1 is fastest for small networks and fair on shared cores)", low=1)
-    env_process: bool = param(
-        False,
+    env_process: bool | None = param(
+        None,
         "step the environment in its own process while the learner runs its gradient step (about max(env, "
-        "learner) per step on two cores instead of their sum); each action then comes from the weights of one "
-        "gradient step before, the order of the ROS graph (der_ros/train/env_process.py). False: act, step, "
-        "observe, learn in turn",
+        "learner) per step on two cores instead of their sum), with the same results as the sequential loop bit "
+        "for bit (der_ros/train/env_process.py). None (auto): on for the SUMO environments when this run has a CPU "
+        "for the trainer, one for the env and one for periodic evaluations in a process (the cores of the "
+        "process, or $DER_CPUS_PER_RUN, which the suites' backends set to their share per run) and the run has "
+        "5,000 steps or more, off otherwise; "
+        "False: act, step, observe, learn in turn in this process",
     )
     run_dir: str | None = param(None, "output folder; None = runs/<env>-<replay>-<seed>-<timestamp> under runs_root")
     runs_root: str = param("runs", "parent folder of generated run directories")

@@ -1,11 +1,12 @@
 """The training environment in its own process, so the simulation and the gradient step overlap.
 
-``train.env_process: true`` runs the environment here: the trainer sends the action, runs its
-gradient step while the worker simulates, then takes the result. On a machine with two cores the
-step costs about ``max(env step, learner step)`` instead of their sum. The one difference from
-the sequential loop is the order: each action comes from the weights of one gradient step
-before (the update of step t runs while step t is simulated), which is exactly the order of the
-ROS graph, where the agent node answers the bridge first and learns while it steps.
+``train.env_process`` (default: auto, see :func:`use_env_process`) runs the environment here: the
+trainer sends the action, stores (s, a) with the rest of the transition deferred
+(``ReplayBuffer.add_deferred``), runs its gradient step while the worker simulates, then takes the
+result. On a machine with two cores the step costs about ``max(env step, learner step)`` instead of
+their sum. The results are those of the sequential loop, bit for bit: the batch of step t may hold
+step t's own transition; when it does (a few percent of the steps: 128 of the thousands stored), the
+replay waits for the worker at that gather and the step is not overlapped.
 
 Protocol (one ``multiprocessing`` pipe, pickled tuples): ``("reset", seed)`` -> ``(obs, info)``;
 ``("step", action)`` -> ``(obs, reward, terminated, truncated, info, reset)`` where ``reset`` is
@@ -32,13 +33,53 @@ import numpy as np
 
 from der_ros.configuration import ConfigError
 from der_ros.train.envs import make_env_from_config, pickle_env_state
+from sumo_bridge import ENV_IDS
 
-__all__ = ["EnvProcess"]
+__all__ = ["CPUS_PER_RUN_ENV", "MIN_STEPS_FOR_WORKER", "EnvProcess", "cpus_per_run", "use_env_process"]
 
+#: environment variable with the CPUs one training run may use; the suites' backends set it for their
+#: runs (the local backend: cores / parallel runs; Ray: the CPUs reserved per task)
+CPUS_PER_RUN_ENV = "DER_CPUS_PER_RUN"
+
+
+#: fewest steps to go for which auto starts the worker: starting it costs ~0.7-1 s more than opening the
+#: env in process, and it saves ~0.3-0.4 ms per ring step on two cores (bench/train_loop.py)
+MIN_STEPS_FOR_WORKER = 5000
 
 #: how long a side polls the pipe before it blocks: a blocked reader costs a wake-up on every message
 #: (~120 us each way on the 2-core VM of bench/README.md, 236 us per round trip; polled: 90 us)
 SPIN_SECONDS = 0.002
+
+
+def cpus_per_run() -> float:
+    """CPUs this training run may use: ``$DER_CPUS_PER_RUN`` if set, else the cores of this process."""
+    value = os.environ.get(CPUS_PER_RUN_ENV)
+    if value:
+        try:
+            return float(value)
+        except ValueError:
+            raise ConfigError(f"${CPUS_PER_RUN_ENV} = {value!r}, expected a number of CPUs") from None
+    try:
+        return float(len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return float(os.cpu_count() or 1)
+
+
+def use_env_process(setting: bool | None, env_id: str, evaluator_process: bool = False,
+                    steps_to_go: int = MIN_STEPS_FOR_WORKER) -> bool:
+    """``train.env_process``: as set, or (None, auto) for the SUMO environments when the run has a CPU for
+    the trainer, one for the env worker and, with periodic evaluations in a process of their own
+    (``evaluator_process``), one for those, and at least :data:`MIN_STEPS_FOR_WORKER` steps to go.
+    CartPole's and Atari's steps are shorter than the pipe's round trip: auto keeps them in process. On 2
+    cores with ring.yaml's evaluations every 2,500 steps the worker made a whole run slower (63 s against
+    53 s: three busy processes on two cores)."""
+    if setting is not None:
+        return bool(setting)
+    return (
+        env_id in ENV_IDS
+        and steps_to_go >= MIN_STEPS_FOR_WORKER
+        and cpus_per_run() >= 2 + int(evaluator_process)
+    )
 
 
 def _wait(conn: Any, spin: float = SPIN_SECONDS) -> None:

@@ -45,6 +45,7 @@ from der_ros.configuration import ConfigError
 from der_ros.train.envs import make_env_from_config
 
 __all__ = [
+    "resolve_eval_mode",
     "EVAL_SEED_BASE",
     "TUNING_EVAL_SEED_BASE",
     "TRAINING_SEED_LIMIT",
@@ -587,6 +588,14 @@ class ProcessEvaluator(Evaluator):
         self._results.close()
 
 
+def resolve_eval_mode(mode: str, env_id: str) -> str:
+    """``train.eval_mode`` with 'auto' resolved: 'process' for the SUMO ids (libsumo: one simulation per
+    process), 'inline' otherwise."""
+    if mode == "auto":
+        return "process" if str(env_id).startswith("der_ros/") else "inline"
+    return mode
+
+
 def make_evaluator(
     env_cfg: Any,
     obs_shape: tuple[int, ...],
@@ -600,8 +609,7 @@ def make_evaluator(
     parallel_envs: int = 16,
 ) -> Evaluator:
     """An evaluator for ``env_cfg``: ``mode`` 'process', 'inline', or 'auto' (process for SUMO ids)."""
-    if mode == "auto":
-        mode = "process" if str(env_cfg.id).startswith("der_ros/") else "inline"
+    mode = resolve_eval_mode(mode, env_cfg.id)
     spec = EvalSpec(env_cfg, tuple(obs_shape), np.dtype(obs_dtype).str, int(n_actions), network,
                     tuple(int(h) for h in hidden_sizes), int(episodes_per_seed), int(seed_base),
                     1 if mode == "process" else int(parallel_envs))  # fmt: skip

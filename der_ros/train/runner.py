@@ -39,7 +39,7 @@ import torch
 
 from der_ros.agent.dqn import DQNAgent, resolve_device
 from der_ros.train.config import ExperimentConfig, save_experiment_config
-from der_ros.train.env_process import EnvProcess
+from der_ros.train.env_process import EnvProcess, use_env_process
 from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
 from der_ros.train.evaluation import (
     EVALUATIONS_CSV,
@@ -49,6 +49,7 @@ from der_ros.train.evaluation import (
     check_training_seed,
     make_evaluator,
     net_state,
+    resolve_eval_mode,
     training_env_seed,
     truncate_evaluations,
     write_eval_row,
@@ -101,20 +102,34 @@ def default_run_dir(cfg: ExperimentConfig) -> Path:
 class _StopFlag:
     """SIGINT or SIGTERM -> stop after the current step and write a checkpoint (a second one raises
     KeyboardInterrupt at once). Installed explicitly for both signals: a run started in the
-    background inherits SIGINT ignored, and SIGTERM is how supervisors and ``kill`` stop a job."""
+    background inherits SIGINT ignored, and SIGTERM is how supervisors and ``kill`` stop a job.
+
+    A second signal within :attr:`REPEAT_S` of the first is the same request arriving twice, not
+    "again": a terminal's Ctrl-C reaches every process of its group, and a suite's backend then
+    forwards the stop to its runs as well (``ray.cancel`` raises SIGINT in the task), which used to
+    abort a run while it was writing its interrupted checkpoint. The runner keeps the flag installed
+    until that checkpoint and the summary are written."""
 
     _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    #: seconds after the first signal in which another one does not abort
+    REPEAT_S = 2.0
 
     def __init__(self) -> None:
         self.stop = False
+        self._first = 0.0
         self._previous: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
         if self.stop:
-            raise KeyboardInterrupt
+            if time.monotonic() - self._first >= self.REPEAT_S:
+                raise KeyboardInterrupt
+            log.warning("%s again within %.0f s: already stopping (once more after that to abort)", name,
+                        self.REPEAT_S)
+            return
         self.stop = True
-        log.warning("%s: finishing this step, writing a checkpoint (Ctrl-C again to abort)",
-                    signal.Signals(signum).name)
+        self._first = time.monotonic()
+        log.warning("%s: finishing this step, writing a checkpoint (Ctrl-C again to abort)", name)
 
     def __enter__(self) -> _StopFlag:
         if threading.current_thread() is threading.main_thread():
@@ -168,6 +183,26 @@ class _Progress:
             self._progress.stop()
 
 
+class _StepResult:
+    """The answer to the step an :class:`EnvProcess` is simulating, fetched once: by the replay when
+    a batch first needs the step's transition (:meth:`complete`), else after the gradient step."""
+
+    def __init__(self, env: EnvProcess) -> None:
+        self._env = env
+        self._result: tuple[Any, ...] | None = None
+
+    def complete(self) -> tuple[float, np.ndarray, bool, bool]:
+        """(reward, next_obs, terminated, truncated) for ``ReplayBuffer.add_deferred``."""
+        self._result = r = self._env.step_wait()
+        return float(r[1]), r[0], bool(r[2]), bool(r[3])
+
+    def take(self) -> tuple[Any, ...]:
+        """The step's (obs, reward, terminated, truncated, info, reset); the replay has completed it."""
+        r, self._result = self._result, None
+        assert r is not None, "the deferred transition was not completed"
+        return r
+
+
 def train(
     cfg: ExperimentConfig,
     run_dir: str | Path | None = None,
@@ -206,7 +241,13 @@ def _train(
     run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
     # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
     # runs before the run directory is created: a failed start writes nothing.
-    env: Any = EnvProcess(cfg.env, t_cfg.seed) if t_cfg.env_process else make_env_from_config(cfg.env, t_cfg.seed)
+    eval_process = bool(t_cfg.eval_interval) and resolve_eval_mode(t_cfg.eval_mode, cfg.env.id) == "process"
+    # (a resumed run has fewer steps to go; auto decides on the whole run's length, known before the checkpoint)
+    in_worker = use_env_process(t_cfg.env_process, cfg.env.id, evaluator_process=eval_process,
+                                steps_to_go=t_cfg.total_steps)
+    env: Any = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
+    log.info("environment %s (train.env_process = %s)", "in a worker process, stepping while the learner updates"
+             if in_worker else "in this process", "auto" if t_cfg.env_process is None else t_cfg.env_process)
     cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
     obs_shape, obs_dtype = obs_spec(env)
     n_actions = int(env.action_space.n)
@@ -322,58 +363,61 @@ def _train(
         return agent.save(run_path / CHECKPOINT_NAME, extra=extra)
 
     overlap = isinstance(env, EnvProcess)
+    step_result = _StepResult(env) if overlap else None
     try:
-        with _StopFlag() as stop:
-            if redo_eval:
-                # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
-                evaluate_now(t_cfg.eval_episodes)
-            while agent.steps < t_cfg.total_steps:
-                action = agent.act(obs)
-                if overlap:  # the gradient step runs while the worker simulates (module env_process)
-                    env.step_async(action)
-                    metrics = agent.learn()
-                    next_obs, reward, terminated, truncated, info, reset = env.step_wait()
-                    agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
-                else:
-                    next_obs, reward, terminated, truncated, info = env.step(action)
-                    agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
-                    metrics = agent.learn()
-                if metrics:
-                    acc.add(metrics)
-                if "episode" in info:
-                    record_episode(info)
-                if terminated or truncated:
-                    next_obs, reset_info = reset if overlap else env.reset()
-                    if "episode" in reset_info:
-                        record_episode(reset_info)
-                obs = next_obs
-                step = agent.steps
+        # (entered on the cleanup stack: the handlers stay until the interrupted checkpoint and summary are written)
+        stop = cleanup.enter_context(_StopFlag())
+        if redo_eval:
+            # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
+            evaluate_now(t_cfg.eval_episodes)
+        while agent.steps < t_cfg.total_steps:
+            action = agent.act(obs)
+            if overlap:  # the gradient step runs while the worker simulates (module env_process)
+                env.step_async(action)
+                agent.observe_deferred(obs, action, step_result.complete)
+                metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
+                agent.replay.resolve_deferred()
+                next_obs, reward, terminated, truncated, info, reset = step_result.take()
+            else:
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+                metrics = agent.learn()
+            if metrics:
+                acc.add(metrics)
+            if "episode" in info:
+                record_episode(info)
+            if terminated or truncated:
+                next_obs, reset_info = reset if overlap else env.reset()
+                if "episode" in reset_info:
+                    record_episode(reset_info)
+            obs = next_obs
+            step = agent.steps
 
-                if step % t_cfg.log_interval == 0:
-                    now = time.perf_counter()
-                    sps = (step - log_step) / max(now - log_t, 1e-9)
-                    log_t, log_step = now, step
-                    values = acc.pop_means()
-                    values["charts/steps_per_s"] = sps
-                    values["charts/epsilon"] = agent.epsilon
-                    values.update(agent.replay.stats())
-                    writer.scalars(step, wall(), values)
-                    progress.update(step, last_return, sps)
-                    if evaluator is not None:
-                        record_evaluations(evaluator.poll())
-                if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
-                    evaluate_now(t_cfg.eval_episodes)
-                if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
-                    path = checkpoint()
-                    if on_checkpoint is not None:
-                        on_checkpoint(path, step)
-                if stop.stop:
-                    interrupted = True
-                    break
-            if not interrupted and evaluator is not None:
-                # the final evaluation (more episodes), or the last periodic one if there is none
-                evaluate_now(t_cfg.final_eval_episodes or (t_cfg.eval_episodes if t_cfg.eval_interval else 0))
-                record_evaluations(evaluator.finish())
+            if step % t_cfg.log_interval == 0:
+                now = time.perf_counter()
+                sps = (step - log_step) / max(now - log_t, 1e-9)
+                log_t, log_step = now, step
+                values = acc.pop_means()
+                values["charts/steps_per_s"] = sps
+                values["charts/epsilon"] = agent.epsilon
+                values.update(agent.replay.stats())
+                writer.scalars(step, wall(), values)
+                progress.update(step, last_return, sps)
+                if evaluator is not None:
+                    record_evaluations(evaluator.poll())
+            if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
+                evaluate_now(t_cfg.eval_episodes)
+            if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
+                path = checkpoint()
+                if on_checkpoint is not None:
+                    on_checkpoint(path, step)
+            if stop.stop:
+                interrupted = True
+                break
+        if not interrupted and evaluator is not None:
+            # the final evaluation (more episodes), or the last periodic one if there is none
+            evaluate_now(t_cfg.final_eval_episodes or (t_cfg.eval_episodes if t_cfg.eval_interval else 0))
+            record_evaluations(evaluator.finish())
     except BaseException:
         if evaluator is not None:  # no evaluation process outlives a failed run
             evaluator.close()

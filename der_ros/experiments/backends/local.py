@@ -20,19 +20,23 @@ from typing import Any
 
 from der_ros.experiments.backends.base import Backend, EventSink, RunEvent
 from der_ros.experiments.suite import RunSpec, default_jobs, run_one
+from der_ros.train.env_process import CPUS_PER_RUN_ENV
 
 __all__ = ["LocalBackend"]
 
 log = logging.getLogger(__name__)
 
 
-def _worker_init() -> None:
+def _worker_init(cpus_per_run: float) -> None:
     """Idle workers ignore Ctrl-C (a running training installs its own handler, which stops
-    after the current step and writes a checkpoint); one torch thread per worker."""
+    after the current step and writes a checkpoint); one torch thread per worker; the run's share
+    of the cores in ``$DER_CPUS_PER_RUN`` (``train.env_process`` auto puts a ring run's env in a
+    second process only when the run has two CPUs to itself)."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(1)
+    os.environ[CPUS_PER_RUN_ENV] = f"{cpus_per_run:g}"
 
 
 class LocalBackend(Backend):
@@ -59,7 +63,8 @@ class LocalBackend(Backend):
         queue = deque(specs)
         pending: dict[Future[dict[str, Any]], RunSpec] = {}
         outcomes: list[RunEvent] = []
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init)
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_worker_init,
+                                   initargs=(default_jobs() / workers,))
 
         def submit() -> None:
             spec = queue.popleft()

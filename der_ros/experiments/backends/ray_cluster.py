@@ -53,6 +53,7 @@ from der_ros.experiments.backends.artifacts import (
 from der_ros.experiments.backends.base import Backend, BackendError, EventSink, RunEvent, RunFailedError
 from der_ros.experiments.suite import RunSpec, _resolve, default_jobs, run_one
 from der_ros.train.config import experiment_from_dict
+from der_ros.train.env_process import CPUS_PER_RUN_ENV
 from der_ros.train.runner import CHECKPOINT_NAME, SUMMARY_NAME
 
 __all__ = ["RayBackend", "RayRunTask", "execute_run", "loopback_ray", "import_ray"]
@@ -148,6 +149,8 @@ def execute_run(task: RayRunTask) -> dict[str, Any]:
     import ray
 
     _remove_orphans()
+    # the CPUs Ray reserved for this task decide train.env_process (auto), not the node's cores
+    os.environ[CPUS_PER_RUN_ENV] = f"{ray.get_runtime_context().get_assigned_resources().get('CPU', 1.0):g}"
     workdir = Path(tempfile.mkdtemp(prefix=f"{WORKDIR_PREFIX}{os.getpid()}-"))
     where = {"pid": os.getpid(), "host": socket.gethostname(), "node": ray.get_runtime_context().get_node_id(),
              "workdir": str(workdir)}  # fmt: skip
