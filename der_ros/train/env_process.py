@@ -41,7 +41,6 @@ __all__ = ["CPUS_PER_RUN_ENV", "MIN_STEPS_FOR_WORKER", "EnvProcess", "cpus_per_r
 #: runs (the local backend: cores / parallel runs; Ray: the CPUs reserved per task)
 CPUS_PER_RUN_ENV = "DER_CPUS_PER_RUN"
 
-
 #: fewest steps to go for which auto starts the worker: starting it costs ~0.7-1 s more than opening the
 #: env in process, and it saves ~0.3-0.4 ms per ring step on two cores (bench/train_loop.py)
 MIN_STEPS_FOR_WORKER = 5000
