@@ -91,7 +91,7 @@ def default_loop_uses_worker(evaluate: bool = False) -> bool:
         return False
     full = load_experiment_config(RING_YAML, {} if evaluate else {"train.eval_interval": 0})
     return use_env_process(full.train.env_process, full.env.id, evaluator_process=evaluate,
-                           steps_to_go=full.train.total_steps)
+                           total_steps=full.train.total_steps)
 
 
 def ring_config(steps: int, evaluate: bool = False, env_process: bool | None = None) -> ExperimentConfig:

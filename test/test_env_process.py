@@ -170,7 +170,7 @@ def test_auto_puts_only_the_sumo_envs_in_a_worker_and_only_with_two_cpus_per_run
     assert use_env_process(None, ring) and not use_env_process(None, cartpole)
     assert not use_env_process(False, ring) and use_env_process(True, cartpole)  # as set wins
     assert not use_env_process(None, ring, evaluator_process=True)  # evaluations beside it need a third CPU
-    assert not use_env_process(None, ring, steps_to_go=MIN_STEPS_FOR_WORKER - 1)  # the start would not pay back
+    assert not use_env_process(None, ring, total_steps=MIN_STEPS_FOR_WORKER - 1)  # the start would not pay back
     monkeypatch.setenv(CPUS_PER_RUN_ENV, "3")
     assert use_env_process(None, ring, evaluator_process=True)
     monkeypatch.setenv(CPUS_PER_RUN_ENV, "1")

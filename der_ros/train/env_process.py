@@ -41,7 +41,7 @@ __all__ = ["CPUS_PER_RUN_ENV", "MIN_STEPS_FOR_WORKER", "EnvProcess", "cpus_per_r
 #: runs (the local backend: cores / parallel runs; Ray: the CPUs reserved per task)
 CPUS_PER_RUN_ENV = "DER_CPUS_PER_RUN"
 
-#: fewest steps to go for which auto starts the worker: starting it costs ~0.7-1 s more than opening the
+#: fewest steps of a run for which auto starts the worker: starting it costs ~0.7-1 s more than opening the
 #: env in process, and it saves ~0.3-0.4 ms per ring step on two cores (bench/train_loop.py)
 MIN_STEPS_FOR_WORKER = 5000
 
@@ -65,10 +65,10 @@ def cpus_per_run() -> float:
 
 
 def use_env_process(setting: bool | None, env_id: str, evaluator_process: bool = False,
-                    steps_to_go: int = MIN_STEPS_FOR_WORKER) -> bool:
+                    total_steps: int = MIN_STEPS_FOR_WORKER) -> bool:
     """``train.env_process``: as set, or (None, auto) for the SUMO environments when the run has a CPU for
     the trainer, one for the env worker and, with periodic evaluations in a process of their own
-    (``evaluator_process``), one for those, and at least :data:`MIN_STEPS_FOR_WORKER` steps to go.
+    (``evaluator_process``), one for those, and the run has at least :data:`MIN_STEPS_FOR_WORKER` steps.
     CartPole's and Atari's steps are shorter than the pipe's round trip: auto keeps them in process. On 2
     cores with ring.yaml's evaluations every 2,500 steps the worker made a whole run slower (63 s against
     53 s: three busy processes on two cores)."""
@@ -76,7 +76,7 @@ def use_env_process(setting: bool | None, env_id: str, evaluator_process: bool =
         return bool(setting)
     return (
         env_id in ENV_IDS
-        and steps_to_go >= MIN_STEPS_FOR_WORKER
+        and total_steps >= MIN_STEPS_FOR_WORKER
         and cpus_per_run() >= 2 + int(evaluator_process)
     )
 

@@ -242,9 +242,9 @@ def _train(
     # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
     # runs before the run directory is created: a failed start writes nothing.
     eval_process = bool(t_cfg.eval_interval) and resolve_eval_mode(t_cfg.eval_mode, cfg.env.id) == "process"
-    # (a resumed run has fewer steps to go; auto decides on the whole run's length, known before the checkpoint)
+    # (auto decides on the whole run's length, the same when it is resumed)
     in_worker = use_env_process(t_cfg.env_process, cfg.env.id, evaluator_process=eval_process,
-                                steps_to_go=t_cfg.total_steps)
+                                total_steps=t_cfg.total_steps)
     env: Any = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
     log.info("environment %s (train.env_process = %s)", "in a worker process, stepping while the learner updates"
              if in_worker else "in this process", "auto" if t_cfg.env_process is None else t_cfg.env_process)
