@@ -26,7 +26,7 @@ params file's scenario and seeds, so both runs make the same decisions: ``graph_
 Ends with one JSON line: graph_steps_per_s, inprocess_steps_per_s, graph_ratio,
 roundtrip_p50_ms, roundtrip_p99_ms (training graph, markers on), the same for the graph without
 markers (no_markers_*), eval_roundtrip_p50_ms/p99_ms, the eval graph's steps/s, episode counts.
-Targets: graph >= 60% of in-process (the README's reference run: 0.85), round-trip p50 <= 1 ms.
+Targets: graph >= 0.85x in-process (issue 11; >= 0.6x before it), round-trip p50 <= 1 ms.
 
 ``--pairs N`` runs the in-process loop and the graphs without and with markers N times each, the
 graphs in ABBA order (off-on, on-off, ...), and reports the median run of each (``graph_ratio``:

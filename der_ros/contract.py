@@ -44,8 +44,8 @@ __all__ = [
     "QosSpec", "TopicSpec", "TOPICS", "RELIABLE_VOLATILE", "SENSOR_DATA", "topic_spec", "topic_by_name",
     "default_record_topics", "topics_markdown", "parse_qos_profiles", "merged_qos", "qos_text",
     # parsers
-    "Reward", "stamp_to_ns", "header_ns", "parse_reward", "applied_action_frame", "parse_applied_action",
-    "parse_command", "cdr_command_sender", "command_action", "cloud_to_points", "point_field_names", "odometry_pose",
+    "Reward", "stamp_to_ns", "header_ns", "parse_reward", "reward_from_fields", "applied_action_frame", "parse_applied_action",
+    "parse_command", "cdr_command_sender", "command_action", "cloud_to_points", "points_from_buffer", "point_field_names", "odometry_pose",
     "parse_key_values", "format_value", "episode_values", "parse_episode_events", "diagnostics_to_metrics",
     # the scene markers (visualization_msgs/MarkerArray)
     "MARKER_CUBE", "MARKER_LINE_STRIP", "MARKER_ADD", "MARKER_DELETE", "MARKER_DELETEALL", "VEHICLE_NS", "LANE_NS",
@@ -469,7 +469,10 @@ def applied_action_frame(action: int | None) -> str:
 
 def parse_applied_action(msg: Any) -> int | None:
     """The ``applied_action=<a>`` of a reward's frame_id (None when absent); ValueError if garbled."""
-    frame = str(msg.header.frame_id)
+    return _applied_action(str(msg.header.frame_id))
+
+
+def _applied_action(frame: str) -> int | None:
     if not frame.startswith(APPLIED_ACTION_PREFIX):
         return None
     try:
@@ -481,12 +484,17 @@ def parse_applied_action(msg: Any) -> int | None:
 def parse_reward(msg: Any) -> Reward:
     """``reward`` message -> :class:`Reward`; ValueError naming the field if malformed."""
     v = msg.vector
-    if not math.isfinite(v.x) or abs(v.x) > FLOAT32_MAX:
-        raise ValueError(f"reward x = {v.x!r}, expected a finite number within float32 range (it is stored as float32)")
-    for name, flag in (("y (terminated)", v.y), ("z (truncated)", v.z)):
+    return reward_from_fields(header_ns(msg), str(msg.header.frame_id), v.x, v.y, v.z)
+
+
+def reward_from_fields(stamp_ns: int, frame_id: str, x: float, y: float, z: float) -> Reward:
+    """:func:`parse_reward` from the message's fields (the agent node's CDR reader decodes them itself)."""
+    if not math.isfinite(x) or abs(x) > FLOAT32_MAX:
+        raise ValueError(f"reward x = {x!r}, expected a finite number within float32 range (it is stored as float32)")
+    for name, flag in (("y (terminated)", y), ("z (truncated)", z)):
         if flag not in (0.0, 1.0):
             raise ValueError(f"reward {name} = {flag!r}, expected 0 or 1")
-    return Reward(header_ns(msg), float(v.x), v.y == 1.0, v.z == 1.0, parse_applied_action(msg))
+    return Reward(int(stamp_ns), float(x), y == 1.0, z == 1.0, _applied_action(frame_id))
 
 
 def parse_command(msg: Any) -> tuple[int, list[int], list[float], str]:
@@ -553,7 +561,15 @@ def cloud_to_points(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray
             f"state point_step = {msg.point_step}, {len(data)} data bytes for {n} points, "
             f"expected point_step {step} and {n * step} bytes"
         )
-    dtype = np.dtype(">f8" if msg.is_bigendian else "<f8")
+    return points_from_buffer(data, n, names, bool(msg.is_bigendian))
+
+
+def points_from_buffer(data: Any, n: int, names: Sequence[str], bigendian: bool = False) -> np.ndarray:
+    """The ``(n, len(names))`` float64 points of a ``state``'s data bytes (FLOAT64 fields in order), a
+    copy; ValueError naming the point and field of a value that is not finite or beyond float32's range.
+    The last step of :func:`cloud_to_points`, shared with the CDR reader of the agent node
+    (:mod:`der_ros.bag.step_cdr_read`), which has checked the rest of the layout itself."""
+    dtype = np.dtype(">f8" if bigendian else "<f8")
     # rclpy gives array.array/bytes, rosbags a uint8 ndarray: all expose the buffer protocol
     points = np.frombuffer(data, dtype=dtype).astype(np.float64).reshape(n, len(names))
     with np.errstate(invalid="ignore"):

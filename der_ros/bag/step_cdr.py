@@ -1,4 +1,4 @@
-"""The bridge's per-step messages (``/clock``, ``reward``, ``state``, ``ego/odom``) as CDR bytes, without ROS.
+"""The per-step messages (``/clock``, ``reward``, ``state``, ``ego/odom``, the agent's ``lane_change_cmd``) as CDR bytes, without ROS.
 
 Like :mod:`der_ros.bag.scene_cdr`: ``Publisher.publish(bytes)`` sends them as they are. Plain CDR,
 little endian (encapsulation ``00 01 00 00``), every field in declaration order, aligned to its size
@@ -12,6 +12,8 @@ cost is on the lockstep's critical path. Building the rclpy messages and letting
 took ~40 us for the state (its twelve PointField objects alone ~10 us), ~15 us for the reward and
 ~25 us for the odometry; these encoders take a few us each (``bench/graph.py`` times the graph).
 The parts that never change (the state's field table, the odometry's covariances) are laid out once.
+The agent's answer, ``lane_change_cmd``, is on the same path the other way (:func:`command_cdr`).
+Reading them back without rclpy: :mod:`der_ros.bag.step_cdr_read`.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from der_ros.bag.cdr import stamp_parts
 from der_ros.contract import applied_action_frame
 from sumo_bridge.observation import POINT_FIELDS
 
-__all__ = ["clock_cdr", "reward_cdr", "state_cdr", "odometry_cdr"]
+__all__ = ["clock_cdr", "command_cdr", "reward_cdr", "state_cdr", "state_field_table", "odometry_cdr"]
 
 _FLOAT64 = 8  # sensor_msgs/PointField.FLOAT64
 
@@ -57,6 +59,16 @@ def reward_cdr(stamp_ns: int, reward: float, terminated: bool, truncated: bool, 
     """The ``reward`` message (geometry_msgs/Vector3Stamped) of :func:`der_ros.nodes.msg_conversions.make_reward`."""
     head = _header(stamp_ns, applied_action_frame(applied_action))
     return head + _pad(len(head) - 4, 8) + _VECTOR3(float(reward), 1.0 if terminated else 0.0, 1.0 if truncated else 0.0)
+
+
+_COMMAND_TAIL = struct.Struct("<IIi").pack  # axes: length 0; buttons: length 1, the action
+
+
+def command_cdr(stamp_ns: int, action: int, sender: str = "") -> bytes:
+    """The ``lane_change_cmd`` (sensor_msgs/Joy) of :func:`der_ros.nodes.msg_conversions.make_command`:
+    stamp of the answered state, ``buttons = [action]``, no axes, the sender id in ``header.frame_id``."""
+    head = _header(stamp_ns, sender)
+    return head + _pad(len(head) - 4, 4) + _COMMAND_TAIL(0, 1, int(action))
 
 
 class _Layout:
@@ -89,6 +101,12 @@ def _state_parts(frame_id: str, fields: tuple[str, ...]) -> tuple[bytes, bytes]:
     mid.put(b"\0")  # is_bigendian
     mid.put(b"", 4)  # point_step follows
     return bytes(head.out), bytes(mid.out)
+
+
+def state_field_table(fields: tuple[str, ...] = POINT_FIELDS) -> bytes:
+    """The constant bytes of a state between ``width`` and ``point_step`` (the field table, is_bigendian
+    and padding), the same for every frame_id: they start 4-aligned and align to at most 4."""
+    return _state_parts("", tuple(fields))[1]
 
 
 _CLOUD_SIZES = struct.Struct("<III").pack  # point_step, row_step, len(data)

@@ -2,7 +2,9 @@
 
 Subscribes to ``state`` (PointCloud2), ``reward`` (Vector3Stamped) and ``episode``
 (DiagnosticArray) from the bridge, answers every non-terminal state with a ``lane_change_cmd``
-(sensor_msgs/Joy stamped with the state's stamp) and learns online: the stamp join, the
+(sensor_msgs/Joy stamped with the state's stamp) and learns online; the state, the reward and the command
+are read and written as CDR bytes (:mod:`der_ros.bag.step_cdr_read`, :mod:`der_ros.bag.step_cdr`), any
+other valid encoding decoded by rclpy: the stamp join, the
 transition rule and the episode accounting live in the ROS-free
 :class:`der_ros.agent.online.OnlineLearner`; this module only converts messages, owns the
 :class:`der_ros.agent.dqn.DQNAgent` and publishes.
@@ -40,11 +42,14 @@ from rclpy.clock import Clock as RclClock
 from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Joy, PointCloud2
 from std_srvs.srv import SetBool, Trigger
 
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.online import OnlineLearner
+from der_ros.bag.step_cdr import command_cdr
+from der_ros.bag.step_cdr_read import read_reward_cdr, read_state_cdr
 from der_ros.contract import (
     COMMAND,
     EPISODE,
@@ -69,6 +74,14 @@ from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observati
 __all__ = ["AgentNode", "parameter_sections", "main"]
 
 _NS = 1_000_000_000
+
+
+def _deserialize(data: bytes, msg_type: type) -> Any:
+    """rclpy's decoding of raw bytes; ValueError (a rejected message) when rclpy cannot decode them."""
+    try:
+        return deserialize_message(data, msg_type)
+    except Exception as exc:  # noqa: BLE001 - whatever rclpy raises for bytes it cannot decode
+        raise ValueError(f"undecodable {msg_type.__name__} ({type(exc).__name__}: {exc})") from None
 #: learner counters of what it dropped, reported in the log (at most one line per period)
 _DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted",
                   "stream_jumps", "abandoned_episodes")
@@ -140,8 +153,9 @@ class AgentNode(Node):
 
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
         self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
-        self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE))
-        self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD))
+        # raw CDR: the state and the reward are read without rclpy's message objects (bag/step_cdr_read.py)
+        self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE), raw=True)
+        self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD), raw=True)
         self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))
         # what is still unreported is logged even when no message follows (steady clock: sim time may stop)
         self.create_timer(_JUMP_LOG_PERIOD, self._report_drops, clock=RclClock(clock_type=ClockType.STEADY_TIME))
@@ -181,18 +195,23 @@ class AgentNode(Node):
         self.get_logger().warning(f"rejected {topic} message ({self.bad_messages[topic]} so far): {exc}",
                                   throttle_duration_sec=1.0)
 
-    def _on_state(self, msg: PointCloud2) -> None:
+    def _on_state(self, data: bytes) -> None:
         try:  # malformed, non-finite or beyond float32: rejected and counted, never stored
-            points = cloud_to_points(msg, POINT_FIELDS)
-            decisions = self.learner.on_state(header_ns(msg), points)
+            read = read_state_cdr(data, POINT_FIELDS)  # the bridge's layout, read directly
+            if read is None:  # any other encoding: rclpy decodes it, the contract's parser names what is wrong
+                msg = _deserialize(data, PointCloud2)
+                read = header_ns(msg), cloud_to_points(msg, POINT_FIELDS)
+            decisions = self.learner.on_state(*read)
         except ValueError as exc:
             self._reject(STATE, exc)
             return
         self._handle(decisions)
 
-    def _on_reward(self, msg: Vector3Stamped) -> None:
+    def _on_reward(self, data: bytes) -> None:
         try:
-            r = parse_reward(msg)
+            r = read_reward_cdr(data)
+            if r is None:
+                r = parse_reward(_deserialize(data, Vector3Stamped))
             if r.applied_action is not None and not 0 <= r.applied_action < self.cfg.n_actions:
                 raise ValueError(f"reward applied_action = {r.applied_action}, expected 0..{self.cfg.n_actions - 1}")
             decisions = self.learner.on_reward(r.stamp_ns, r.reward, r.terminated, r.truncated, r.applied_action)
@@ -226,7 +245,7 @@ class AgentNode(Node):
             return
         for d in decisions:  # answer first: the bridge steps while we learn
             if d.action is not None:
-                self.pub_cmd.publish(mc.make_command(d.stamp_ns, d.action, self.sender_id))
+                self.pub_cmd.publish(command_cdr(d.stamp_ns, d.action, self.sender_id))
         for d in decisions:
             if d.stored:
                 self._learn()

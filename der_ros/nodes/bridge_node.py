@@ -64,6 +64,7 @@ from visualization_msgs.msg import MarkerArray
 
 from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.step_cdr import clock_cdr, odometry_cdr, reward_cdr, state_cdr
+from der_ros.bag.step_cdr_read import read_command_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -349,13 +350,15 @@ class BridgeNode(Node):
         if early is not None:
             self._log_reject(early, f"sender={sender!r}")
             return
-        try:
-            msg = deserialize_message(data, Joy)
-        except Exception as exc:  # noqa: BLE001 - bytes rclpy cannot decode are a malformed command
-            self.gate.screen(None)
-            self._log_reject(Verdict.MALFORMED, f"undecodable ({type(exc).__name__})")
-            return
-        stamp, buttons, axes, sender = parse_command(msg)
+        command = read_command_cdr(data)  # little-endian plain CDR read directly (bag/step_cdr_read.py)
+        if command is None:  # another encoding: rclpy decodes it
+            try:
+                command = parse_command(deserialize_message(data, Joy))
+            except Exception as exc:  # noqa: BLE001 - bytes rclpy cannot decode are a malformed command
+                self.gate.screen(None)
+                self._log_reject(Verdict.MALFORMED, f"undecodable ({type(exc).__name__})")
+                return
+        stamp, buttons, axes, sender = command
         verdict, action = self.gate.offer(stamp, buttons, axes, sender)
         if verdict is not Verdict.ACCEPTED:
             self._log_reject(verdict, f"stamp={stamp} buttons={buttons} axes={axes} sender={sender!r}")
