@@ -2,16 +2,23 @@
 
 The bridge applies its default action (0, keep lane) when the agent's command misses
 ``command_timeout``, and names the applied action in the next reward; the agent stores the
-applied action. Here the timeout is 2 ms and the agent saves a checkpoint every 10 steps (a
-pause of several ms), so many commands arrive late. ``der replay export`` of the recorded bag
-must give exactly the transitions in the agent's replay: same observations (bit for bit), the
-applied actions, rewards, flags, in the same order.
+applied action. Here the timeout is 2 ms and the test freezes the agent's process
+(SIGSTOP ... SIGCONT, 10 ms every 30 ms) while the bridge steps, so commands arrive late
+whatever the machine's speed: the agent answers the states that queued up meanwhile after the
+bridge has applied its default. (A checkpoint every 10 steps also pauses the agent, but on a
+fast disk such a save can take less than the timeout: CI once saw no late command at all.)
+``der replay export`` of the recorded bag must give exactly the transitions in the agent's
+replay: same observations (bit for bit), the applied actions, rewards, flags, in the same order.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +30,34 @@ from der_ros.bag.export import build_transitions
 from der_ros.bag.reader import BagReader
 
 
+def freeze_agent_now_and_then(run_dir: Path, done: threading.Event, pause: float = 0.010,
+                              every: float = 0.030) -> threading.Thread:
+    """A thread that stops the agent's process for ``pause`` s every ``every`` s until ``done``."""
+
+    def run() -> None:
+        pids = run_dir / "pids.json"
+        pid = None
+        while pid is None and not done.is_set():
+            try:
+                pid = json.loads(pids.read_text()).get("agent_node")
+            except (OSError, ValueError):
+                time.sleep(0.02)
+        while pid is not None and not done.is_set():
+            try:
+                os.kill(pid, signal.SIGSTOP)
+                try:
+                    time.sleep(pause)
+                finally:
+                    os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                return
+            time.sleep(every)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
 def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     proc = der_graph(
@@ -30,16 +65,20 @@ def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_pat
         "-p", "bridge_node:command_timeout=0.002",
         "-p", "agent_node:replay.kind=uniform", "-p", "agent_node:replay.capacity=10000",
         "-p", "agent_node:agent.learning_starts=100000",  # no gradient steps: the agent stays quick
-        "-p", "agent_node:checkpoint_every=10",  # ... except for these pauses, which the bridge times out on
+        "-p", "agent_node:checkpoint_every=10",  # ... except for these pauses and the test's freezes
         "-p", "agent_node:warm_up=false",
     )
+    done = threading.Event()
+    freezer = freeze_agent_now_and_then(run_dir, done)
     try:
         out, _ = proc.communicate(timeout=180)
     finally:
+        done.set()
+        freezer.join(timeout=5)
         reap(proc, run_dir)
     assert proc.returncode == 0, out
     bridge = json.loads(re.search(r"bridge summary: (\{.*\})", (run_dir / "logs" / "bridge_node.log").read_text())[1])
-    assert bridge["commands/timeouts"] > 0, bridge  # the forced timeouts happened
+    assert bridge["commands/late"] > 0, bridge  # the forced timeouts happened, and their commands came late
 
     agent = DQNAgent.load(run_dir / "agent.pt")
     n = len(agent.replay)
