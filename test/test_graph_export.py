@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 from ros_harness import *  # noqa: F403 - ros_domain fixture
-from test_graph_cli import der_graph, reap
+from test_graph_cli import der_graph, node_logs, reap
 
 from der_ros.agent.dqn import DQNAgent
 from der_ros.bag.export import build_transitions
@@ -76,7 +76,7 @@ def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_pat
         done.set()
         freezer.join(timeout=5)
         reap(proc, run_dir)
-    assert proc.returncode == 0, out
+    assert proc.returncode == 0, out + node_logs(run_dir)
     bridge = json.loads(re.search(r"bridge summary: (\{.*\})", (run_dir / "logs" / "bridge_node.log").read_text())[1])
     assert bridge["commands/late"] > 0, bridge  # the forced timeouts happened, and their commands came late
 
@@ -95,4 +95,4 @@ def test_export_equals_the_agents_replay_after_timeouts(ros_domain: int, tmp_pat
     assert np.array_equal(tr.rewards.astype(np.float32), rewards)
     assert np.array_equal(tr.terminated, terminated) and np.array_equal(tr.truncated, truncated)
     # the commanded action differed from the applied one somewhere: exporting commands would have failed
-    assert tr.overridden > 0
+    assert tr.overridden > 0, (bridge, counters)
