@@ -6,7 +6,7 @@ applied action. Here the timeout is 2 ms and the test freezes the agent's proces
 (SIGSTOP ... SIGCONT, 10 ms every 30 ms) while the bridge steps, so commands arrive late
 whatever the machine's speed: the agent answers the states that queued up meanwhile after the
 bridge has applied its default. (A checkpoint every 10 steps also pauses the agent, but on a
-fast disk such a save can take less than the timeout: CI once saw no late command at all.)
+fast disk such a save can take less than the timeout: CI once saw no overridden action.)
 ``der replay export`` of the recorded bag must give exactly the transitions in the agent's
 replay: same observations (bit for bit), the applied actions, rewards, flags, in the same order.
 """
@@ -40,8 +40,10 @@ def freeze_agent_now_and_then(run_dir: Path, done: threading.Event, pause: float
         while pid is None and not done.is_set():
             try:
                 pid = json.loads(pids.read_text()).get("agent_node")
-            except (OSError, ValueError):
-                time.sleep(0.02)
+            except (OSError, ValueError):  # not written yet, or half written
+                pass
+            if pid is None:
+                time.sleep(0.02)  # never a busy loop beside the nodes starting up
         while pid is not None and not done.is_set():
             try:
                 os.kill(pid, signal.SIGSTOP)

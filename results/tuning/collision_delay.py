@@ -1,6 +1,6 @@
 """How many decisions after its lane change does a caused collision happen? (results/tuning/ring_dqn.md)
 
-Runs the immediate-change policy (change towards the target lane at once, then keep) on ring
+Runs the immediate-change baseline (``sumo_bridge.policies.immediate_policy``) on ring
 episodes with seeds 1,700,000,000 + k, outside the training, tuning and report seed sets, and
 counts the decisions between the change and each caused collision.
 
@@ -16,6 +16,7 @@ import gymnasium as gym
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.train.config import load_experiment_config
+from sumo_bridge.policies import immediate_policy
 
 SEED_BASE = 1_700_000_000
 
@@ -30,14 +31,13 @@ def main() -> None:
     delays: collections.Counter[int] = collections.Counter()
     uncaused = 0
     for k in range(args.episodes):
-        obs, _ = env.reset(seed=SEED_BASE + k)
+        _, info = env.reset(seed=SEED_BASE + k)
         t, change_t = 0, None
         while True:
-            action = 0
-            if change_t is None and obs[2] != 0:  # obs[2]: which way the target lane lies
-                action = 1 if obs[2] > 0 else 2
+            action = immediate_policy(info["points"])
+            if change_t is None and action != 0:
                 change_t = t
-            obs, _, terminated, truncated, info = env.step(action)
+            _, _, terminated, truncated, info = env.step(action)
             if info.get("event") == "collision":
                 if info.get("caused"):
                     delays[t - change_t] += 1
