@@ -52,6 +52,13 @@ An episode lasts ``max_episode_steps`` decisions (default 50 x 0.5 s) unless a c
   also forfeited the speed reward of the remaining steps and never changing lane was optimal for
   gamma above ~0.977 (``success_ends_episode=True`` restores that older structure).
   The paper's ring total of 216.91 is about 100 + 50 x 2.33: what this horizon pays.
+* ``commit_on_success=True`` (the authors' "commit" structure on the same horizon): the step that
+  reaches the target lane simulates the rest of the horizon itself (no-op decisions, so nothing the
+  agent could do there is lost) and pays +100 plus the undiscounted sum of the remaining speed
+  rewards; the episode then terminates (event ``success``, or ``collision`` if one follows;
+  ``info["committed_steps"]`` counts the decisions folded in). Returns equal the fixed horizon's
+  for the same decisions, but an episode costs only the decisions up to the change, so a budget of
+  environment steps holds several times more lane-change outcomes to learn the gap boundary from.
 * ``collision`` (terminated): SUMO reports a collision with the ego as collider or victim. The
   agent *caused* it (and gets ``reward_collision``) when it happens within ``collision_window``
   seconds after the ego's own commanded lane change; otherwise (rare: SUMO's car following is
@@ -206,6 +213,7 @@ class LaneChangeEnv(gym.Env):
         self._ego_present = False
         self._colliding = False
         self._hold_target = not cfg.lane_changes_after_success  # commands are no-ops once the target is reached
+        self._commit = cfg.commit_on_success  # success runs the rest of the horizon in its transition
         self._points = empty_points()
         self._obs = encode_observation(self._points, cfg.observation)
         self._ego_lane = 0  # lane index and lane count of the ego in the last points
@@ -245,6 +253,7 @@ class LaneChangeEnv(gym.Env):
         self._target_reached = False
         self._lane_changes = 0
         self._done = False
+        self._committed_steps = 0  # decisions simulated inside the commit transition (commit_on_success)
 
     @property
     def sim(self) -> SumoSimulation:
@@ -504,8 +513,33 @@ class LaneChangeEnv(gym.Env):
         if type(action) is not int or not 0 <= action <= 2:  # fast path for plain ints
             if action not in (0, 1, 2) or isinstance(action, bool):
                 raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
+        reward, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(int(action))
+        if self._commit and self._target_reached and not (terminated or truncated):
+            # the authors' commit structure: the rest of the horizon runs inside this transition (no-op
+            # decisions, the ego held on the target lane) and its speed rewards are summed into it
+            committed = 0
+            while not (terminated or truncated):
+                r, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(0)
+                reward += r
+                committed += 1
+            terminated, truncated = True, False  # the remainder is in the reward: nothing to bootstrap
+            self._committed_steps = committed
+        self._done = terminated or truncated
+        if ego_gone:
+            self._ego_present = False
+        info = self._info(event=event, mean_speed=mean_speed)
+        info["caused"] = caused
+        info["committed_steps"] = self._committed_steps
+        # a fresh array per step (the ego gone: a copy of the last one), so callers may keep or modify it
+        obs = self._obs.copy() if ego_gone else self._obs
+        return obs, float(reward), terminated, truncated, info
+
+    def _advance(self, a: int) -> tuple[float, bool, bool, str | None, bool, float, bool]:
+        """One decision: apply action ``a``, run ``decision_interval`` SUMO steps, score them.
+
+        Returns (reward, terminated, truncated, event, caused, mean speed, ego gone).
+        """
         cfg, api = self.config, self.api
-        a = int(action)
         if a != 0 and not (self._target_reached and self._hold_target):
             new_lane = self._ego_lane + 1 if a == 1 else self._ego_lane - 1
             if 0 <= new_lane < self._ego_lane_count:
@@ -555,14 +589,7 @@ class LaneChangeEnv(gym.Env):
             self._on_target_since = None
         if not terminated and (ego_gone or self._episode_step >= cfg.max_episode_steps):
             truncated, event = True, ("success" if self._target_reached else "time_limit")
-        self._done = terminated or truncated
-        if ego_gone:
-            self._ego_present = False
-        info = self._info(event=event, mean_speed=mean_speed)
-        info["caused"] = caused
-        # a fresh array per step (the ego gone: a copy of the last one), so callers may keep or modify it
-        obs = self._obs.copy() if ego_gone else self._obs
-        return obs, float(reward), terminated, truncated, info
+        return reward, terminated, truncated, event, caused, mean_speed, ego_gone
 
     # ------------------------------------------------------------------ state reading
     def _sim_step(self) -> None:

@@ -47,6 +47,16 @@ class ScenarioConfig:
         "gamma. True: success terminates the episode (our earlier structure; it forfeits the speed reward of "
         "the remaining steps, which makes never changing lane optimal for gamma > ~0.977, see the README)",
     )
+    commit_on_success: bool = param(
+        False,
+        "True: the authors' 'commit' structure on the same fixed horizon. The step in which the target lane "
+        "is reached simulates the rest of the horizon (the task is done, so commands would be no-ops) and pays "
+        "reward_success plus the undiscounted sum of the remaining steps' speed rewards (and reward_collision "
+        "if a caused collision follows); the episode then terminates. Episode returns equal the fixed "
+        "horizon's for the same decisions, but an episode costs only the decisions up to its lane change, so "
+        "a budget of environment steps (agent decisions) holds several times more lane-change outcomes. "
+        "Requires success_ends_episode and lane_changes_after_success False",
+    )
     lane_changes_after_success: bool = param(
         False,
         "False (default): once the target lane is reached the task is done, the ego stays on it and lane-change "
@@ -165,6 +175,10 @@ class ScenarioConfig:
                         f"{name} = {list(getattr(self, name))!r}, expected at most {int(lap // self.min_spacing)} "
                         f"vehicles per lane with min_spacing {self.min_spacing} m on a {lap} m lap"
                     )
+        if self.commit_on_success and (self.success_ends_episode or self.lane_changes_after_success):
+            other = "success_ends_episode" if self.success_ends_episode else "lane_changes_after_success"
+            raise ConfigError(f"commit_on_success = True with {other} = True, expected {other} False (commit "
+                              "simulates the rest of the horizon with the ego held on the target lane)")
         if self.observation.max_lanes < max_lanes:
             raise ConfigError(
                 f"observation.max_lanes = {self.observation.max_lanes!r}, expected >= {max_lanes} for the {self.network} network"

@@ -139,7 +139,16 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert greedy["gif"] == str(gif) and f"  episode:    {gif} (greedy" in out
     assert out.index("  plots:") < out.index("  episode:") < out.index("  logs:")
     first = final["episodes"][0]
-    assert (greedy["seed"], greedy["steps"], greedy["outcome"]) == (final["seeds"][0], first["length"], first["outcome"])
+    assert (greedy["seed"], greedy["outcome"]) == (final["seeds"][0], first["outcome"])
+    # the ring commits the rest of the horizon at a safe change (one decision in the evaluation); the film runs
+    # the plain horizon instead: the same decisions, the ego seen driving on to the end
+    scenario = params["bridge_node"]["ros__parameters"]
+    assert scenario["scenario.commit_on_success"] is True
+    horizon = int(scenario["scenario.max_episode_steps"])
+    if first["outcome"] == "collision":  # at the change or later, inside the committed stretch
+        assert first["length"] <= greedy["steps"] <= horizon
+    else:
+        assert greedy["steps"] == horizon >= first["length"]
     assert greedy["return"] == pytest.approx(first["ret"])
     with Image.open(gif) as im:
         assert im.n_frames == greedy["steps"] + 1
@@ -290,3 +299,19 @@ def test_composed_mode_runs_the_same_graph_in_one_process(ros_domain: int, tmp_p
     c = counts(meta)
     assert c["/state"] == int(bridge["published_states"]) and c["/lane_change_cmd"] >= 40
     assert (run_dir / "agent.pt").is_file()
+
+
+def test_the_greedy_film_runs_the_plain_horizon():
+    """A commit ends the episode at the lane change; the GIF's env turns it off (same decisions and
+    return, the ego seen driving on) and leaves every other scenario field alone."""
+    from der_ros.graph.evaluation import scenario_env_config
+    from der_ros.graph.greedy_episode import watchable_env_config
+
+    bridge = {"scenario.network": "ring", "scenario.commit_on_success": True, "scenario.max_episode_steps": 30}
+    env_cfg = scenario_env_config(bridge)
+    watched = watchable_env_config(env_cfg)
+    assert env_cfg.kwargs["scenario"]["commit_on_success"] is True  # not modified in place
+    assert watched.kwargs["scenario"] == {"commit_on_success": False, "max_episode_steps": 30}
+    assert watched.id == env_cfg.id
+    plain = scenario_env_config({"scenario.network": "ring"})
+    assert watchable_env_config(plain) is plain

@@ -208,6 +208,55 @@ def test_safe_lane_change_pays_the_bonus_once_and_the_episode_goes_on(ring: Lane
     assert info["event"] == "success" and info["target_reached"]
 
 
+def test_commit_on_success_carries_the_remaining_reward_in_one_transition() -> None:
+    """commit_on_success=True (the authors' commit structure): the step that reaches the target lane
+    runs the rest of the horizon and terminates with +100 plus the remaining speed rewards, so the
+    episode return equals the fixed horizon's for the same decisions and the episode is shorter."""
+    results = []
+    seed = keeps = None
+    for commit in (False, True):
+        env = LaneChangeEnv(ScenarioConfig.ring(commit_on_success=commit))  # libsumo: one at a time
+        try:
+            if seed is None:
+                for s in range(20, 40):
+                    try:
+                        keeps = _find_moment(env, want_unsafe=False, seeds=range(s, s + 1))["episode_step"]
+                    except AssertionError:
+                        continue
+                    seed = s
+                    break
+                assert seed is not None, "no free moment in seeds 20-39"
+            env.reset(seed=seed)
+            total, n = 0.0, 0
+            for _ in range(keeps):
+                _obs, reward, terminated, truncated, info = env.step(0)
+                total, n = total + reward, n + 1
+                assert not (terminated or truncated)
+            terminated = truncated = False
+            action = 1
+            while not (terminated or truncated):
+                _obs, reward, terminated, truncated, info = env.step(action)
+                total, n, action = total + reward, n + 1, 0
+            results.append((total, n, terminated, truncated, info["event"], info["committed_steps"]))
+            if commit:
+                with pytest.raises(RuntimeError, match="reset"):
+                    env.step(0)
+        finally:
+            env.close()
+    horizon = ScenarioConfig.ring().max_episode_steps
+    (fixed_return, *fixed), (commit_return, *committed) = results
+    assert fixed_return > 100.0 and commit_return == pytest.approx(fixed_return, abs=1e-9)
+    assert fixed == [horizon, False, True, "success", 0]
+    assert committed == [keeps + 1, True, False, "success", horizon - keeps - 1]
+
+
+def test_commit_on_success_refuses_the_other_structures() -> None:
+    with pytest.raises(ConfigError, match="commit_on_success = True with success_ends_episode"):
+        ScenarioConfig.ring(commit_on_success=True, success_ends_episode=True)
+    with pytest.raises(ConfigError, match="lane_changes_after_success"):
+        ScenarioConfig.ring(commit_on_success=True, lane_changes_after_success=True)
+
+
 def test_lane_changes_after_success_act_but_never_pay_again() -> None:
     """lane_changes_after_success=True: commands still act after success (back to the start lane and
     to the target again), and the bonus is not paid a second time."""

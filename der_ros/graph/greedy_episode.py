@@ -4,7 +4,8 @@ The graph's own bag holds training episodes (epsilon-greedy actions of a learner
 changing), so the episode shown is a fresh one: the final checkpoint's Q-network acting greedily
 (epsilon = 0) on the first evaluation seed (``EVAL_SEED_BASE``, held out from training), in a plain
 LaneChangeEnv of the bridge's scenario -- the first episode of the final evaluation, the same
-trajectory. It runs in a spawned process (one libsumo simulation per process, and torch stays out
+decisions and return (with ``commit_on_success`` switched off, so the film goes on to the horizon
+instead of stopping at the lane change). It runs in a spawned process (one libsumo simulation per process, and torch stays out
 of ``der graph``'s own process), which records the episode as the graph would
 (:func:`der_ros.bag.episode_recording.record_episode`: ``<run dir>/greedy_episode/``, a small bag)
 and renders it with ``der replay render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
@@ -17,7 +18,7 @@ import logging
 import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
 from sumo_bridge.observation import observation_size
 
-__all__ = ["GreedyEpisode", "GIF_NAME", "BAG_NAME", "greedy_episode_gif"]
+__all__ = ["GreedyEpisode", "GIF_NAME", "BAG_NAME", "greedy_episode_gif", "watchable_env_config"]
 
 log = logging.getLogger("der.graph")
 
@@ -79,6 +80,17 @@ def _record_and_render(checkpoint: str, env_cfg: EnvConfig, network: str, hidden
     return {"steps": rec.steps, "ret": rec.ret, "outcome": rec.outcome}
 
 
+def watchable_env_config(env_cfg: EnvConfig) -> EnvConfig:
+    """``env_cfg`` with ``commit_on_success`` off: a commit ends the episode in the step of the lane
+    change, which would cut the film there; the plain horizon shows the ego driving on to the end,
+    with the same decisions and the same return."""
+    scenario = dict(env_cfg.kwargs.get("scenario") or {})
+    if not scenario.get("commit_on_success"):
+        return env_cfg
+    scenario["commit_on_success"] = False
+    return replace(env_cfg, kwargs={**env_cfg.kwargs, "scenario": scenario})
+
+
 def greedy_episode_gif(run_dir: Path, checkpoint: Path, params: dict[str, Any],
                        timeout: float = 900.0) -> GreedyEpisode | None:  # fmt: skip
     """Record and render the greedy episode of ``checkpoint`` (a ``der graph`` run's ``agent.pt``)
@@ -92,7 +104,7 @@ def greedy_episode_gif(run_dir: Path, checkpoint: Path, params: dict[str, Any],
         gif.parent.mkdir(parents=True, exist_ok=True)
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
             job = pool.submit(
-                _record_and_render, str(checkpoint), scenario_env_config(bridge),
+                _record_and_render, str(checkpoint), watchable_env_config(scenario_env_config(bridge)),
                 str(agent.get("agent.network", defaults.network)),
                 [int(h) for h in agent.get("agent.hidden_sizes", defaults.hidden_sizes)],
                 int(agent.get("n_actions", 3)), EVAL_SEED_BASE, str(bag), str(gif),
