@@ -5,8 +5,8 @@ changing), so the episode shown is a fresh one: the final checkpoint's Q-network
 (epsilon = 0) on the first evaluation seed (``EVAL_SEED_BASE``, held out from training), in a plain
 LaneChangeEnv of the bridge's scenario -- the first episode of the final evaluation, the same
 decisions and return (with ``commit_on_success`` switched off, so the film goes on to the horizon
-instead of stopping at the lane change). It runs in a spawned process (one libsumo simulation per process, and torch stays out
-of ``der graph``'s own process), which records the episode as the graph would
+instead of stopping at the lane change). It runs in a spawned process (one libsumo simulation per
+process, and torch stays out of ``der graph``'s own process), which records the episode as the graph would
 (:func:`der_ros.bag.episode_recording.record_episode`: ``<run dir>/greedy_episode/``, a small bag)
 and renders it with ``der replay render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
 A failure here is logged and the run's summary goes on without the GIF.
