@@ -52,14 +52,21 @@ float32, shape ``(EGO_FEATURES + 3 * len(SLOT_NAMES),)``, every entry in [-1, 1]
   ``has_left_lane`` (0/1); ``has_right_lane`` (0/1);
 * per slot, in ``SLOT_NAMES`` order: ``present`` (0/1); ``gap / neighbour_range`` clipped to
   [-1, 1] (an empty slot reads 1.0, "free up to the range"); ``rel_speed / speed_scale``
-  clipped to [-1, 1] (0.0 for an empty slot); ``gap / near_gap_range`` clipped to [-1, 1]
-  (1.0 for an empty slot).
+  clipped to [-1, 1] (0.0 for an empty slot); ``near_gap / near_gap_range`` clipped to [-1, 1]
+  (1.0 for an empty slot), where ``near_gap = min(gap, gap in near_gap_horizon seconds)`` and the
+  gap in ``h`` seconds, both keeping their speeds, is ``gap + rel_speed * h`` for a leader and
+  ``gap - rel_speed * h`` for a follower (``near_gap = gap`` when ``h = 0``).
 
 The present flag keeps "empty" distinguishable from "a vehicle exactly at the range". The second,
 short-range gap channel gives the network resolution where a lane change is decided: whether the
 target-lane follower overlaps the ego by half a metre (a collision) or leaves a metre free (safe)
 is 0.05 apart in ``gap / 30 m`` but 0.3 apart in ``gap / 5 m``. On the tuning seeds it cut the
 greedy DQN's caused collisions on the ring from 3-13% to 1-1.3% (README, "Design choices").
+With ``near_gap_horizon = h > 0`` the channel reads the gap the vehicles will have ``h`` seconds
+later when that is smaller than the gap now: with h = 0.5 s (one decision interval on the shipped
+configs) a leader 0.8 m ahead but 3.7 m/s slower reads as an overlap, as it is one for a lane
+change. The default, 0, reads the gap now; the shipped configs use it, and a look-ahead is under
+evaluation on the tuning seeds (results/tuning/ring_dqn.md, sixth session).
 """
 
 from __future__ import annotations
@@ -119,6 +126,8 @@ SLOT_FEATURES: tuple[str, ...] = ("present", "gap", "rel_speed", "near_gap")
 _COL = {name: i for i, name in enumerate(POINT_FIELDS)}
 _SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
 _TARGET, _PRESENT, _LANES = _COL["target_lane"], _COL["present"], _COL["lane_count"]
+#: Per slot: a leader (ahead of the ego: its gap grows with its relative speed) or a follower.
+_IS_LEADER: tuple[bool, ...] = tuple(name.endswith("leader") for name in SLOT_NAMES)
 
 
 def field_index(name: str) -> int:
@@ -144,9 +153,16 @@ class ObservationConfig:
         "change is decided: a small overlap vs. a small free gap)",
         low=0.1,
     )
+    near_gap_horizon: float = param(
+        0.0,
+        "seconds of look-ahead of the short-range gap channel: it reads min(gap now, gap after this long "
+        "at constant speeds), so a closing neighbour reads nearer; 0 reads the gap now",
+        low=0.0,
+        high=10.0,
+    )
 
     def check(self) -> None:
-        for name in ("neighbour_range", "near_gap_range"):
+        for name in ("neighbour_range", "near_gap_range", "near_gap_horizon"):
             if not np.isfinite(getattr(self, name)):
                 raise ConfigError(f"{name} = {getattr(self, name)!r}, expected a finite number")
 
@@ -199,7 +215,7 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
     # NaN and signed zeros included) without the builtin calls, which dominate at this size.
     ego = rows[0]
     lane = ego[_LANE]
-    speed_scale, rng, near = cfg.speed_scale, cfg.neighbour_range, cfg.near_gap_range
+    speed_scale, rng, near, h = cfg.speed_scale, cfg.neighbour_range, cfg.near_gap_range, cfg.near_gap_horizon
     v = ego[_SPEED] / speed_scale
     m = 0.0 if 0.0 > v else v
     out = [1.0 if 1.0 < m else m]
@@ -211,13 +227,17 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
     out.append(1.0 if 1.0 < m else m)
     out.append(1.0 if lane < ego[_LANES] - 1 else 0.0)
     out.append(1.0 if lane > 0 else 0.0)
-    for row in rows[1:]:
+    for row, leads in zip(rows[1:], _IS_LEADER):
         if row[_PRESENT] > 0.5:
-            g = row[_GAP] / rng
+            gap = row[_GAP]
+            g = gap / rng
             g = -1.0 if -1.0 > g else g
             r = row[_REL] / speed_scale
             r = -1.0 if -1.0 > r else r
-            n = row[_GAP] / near
+            if h > 0.0:
+                later = gap + row[_REL] * h if leads else gap - row[_REL] * h
+                gap = later if later < gap else gap
+            n = gap / near
             n = -1.0 if -1.0 > n else n
             out += (1.0, 1.0 if 1.0 < g else g, 1.0 if 1.0 < r else r, 1.0 if 1.0 < n else n)
         else:

@@ -31,28 +31,35 @@ def _reference(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
         float(lane < ego[C["lane_count"]] - 1),
         float(lane > 0),
     ]
-    for row in points[1:]:
+    for name, row in zip(SLOT_NAMES, points[1:]):
         if row[C["present"]] > 0.5:
-            out += [1.0, np.clip(row[C["gap"]] / cfg.neighbour_range, -1.0, 1.0),
-                    np.clip(row[C["rel_speed"]] / cfg.speed_scale, -1.0, 1.0),
-                    np.clip(row[C["gap"]] / cfg.near_gap_range, -1.0, 1.0)]  # fmt: skip
+            gap, rel, h = row[C["gap"]], row[C["rel_speed"]], cfg.near_gap_horizon
+            near = gap
+            if h > 0:
+                later = gap + rel * h if name.endswith("leader") else gap - rel * h
+                near = np.where(later < gap, later, gap)
+            out += [1.0, np.clip(gap / cfg.neighbour_range, -1.0, 1.0),
+                    np.clip(rel / cfg.speed_scale, -1.0, 1.0),
+                    np.clip(near / cfg.near_gap_range, -1.0, 1.0)]  # fmt: skip
         else:
             out += [0.0, 1.0, 0.0, 1.0]
     return np.array(out, dtype=np.float32)
 
 
 def _builtin_reference(rows: list[list[float]], cfg: ObservationConfig) -> np.ndarray:
-    """The encoder as first written, with ``min(max(x, lo), hi)``: the fast version must match it
-    byte for byte (signed zeros and NaN included), or old bags would encode differently."""
+    """The encoder written with ``min(max(x, lo), hi)``: the fast version must match it byte for byte
+    (signed zeros and NaN included), or the env and the agent node could encode differently."""
     ego, lane = rows[0], rows[0][C["lane"]]
     out = [min(max(ego[C["speed"]] / cfg.speed_scale, 0.0), 1.0), min(max(lane / (cfg.max_lanes - 1), 0.0), 1.0),
            min(max(ego[C["target_lane"]] - lane, -1.0), 1.0), 1.0 if lane < ego[C["lane_count"]] - 1 else 0.0,
            1.0 if lane > 0 else 0.0]  # fmt: skip
-    for row in rows[1:]:
+    for name, row in zip(SLOT_NAMES, rows[1:]):
         if row[C["present"]] > 0.5:
-            out += (1.0, min(max(row[C["gap"]] / cfg.neighbour_range, -1.0), 1.0),
-                    min(max(row[C["rel_speed"]] / cfg.speed_scale, -1.0), 1.0),
-                    min(max(row[C["gap"]] / cfg.near_gap_range, -1.0), 1.0))  # fmt: skip
+            gap, rel, h = row[C["gap"]], row[C["rel_speed"]], cfg.near_gap_horizon
+            near = gap if h == 0 else min(gap, gap + rel * h if name.endswith("leader") else gap - rel * h)
+            out += (1.0, min(max(gap / cfg.neighbour_range, -1.0), 1.0),
+                    min(max(rel / cfg.speed_scale, -1.0), 1.0),
+                    min(max(near / cfg.near_gap_range, -1.0), 1.0))  # fmt: skip
         else:
             out += (0.0, 1.0, 0.0, 1.0)
     return np.array(out, dtype=np.float32)
@@ -72,8 +79,14 @@ def _random_points(rng: np.random.Generator) -> np.ndarray:
     return pts
 
 
-@pytest.mark.parametrize("cfg", [ObservationConfig(),
-                                 ObservationConfig(neighbour_range=12.5, speed_scale=7.0, max_lanes=5, near_gap_range=2.5)])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        ObservationConfig(),
+        ObservationConfig(near_gap_horizon=0.5),
+        ObservationConfig(neighbour_range=12.5, speed_scale=7.0, max_lanes=5, near_gap_range=2.5, near_gap_horizon=1.5),
+    ],
+)
 def test_list_route_equals_array_route_and_the_formula(cfg: ObservationConfig) -> None:
     rng = np.random.default_rng(7)
     for _ in range(500):
@@ -105,3 +118,29 @@ def test_the_near_gap_channel_resolves_what_decides_a_lane_change() -> None:
     assert obs[1][base + 1] - obs[0][base + 1] == pytest.approx(1.5 / 30.0)
     assert obs[1][base + 3] - obs[0][base + 3] == pytest.approx(1.5 / 5.0)
     assert observation_size() == 5 + 4 * len(SLOT_NAMES) == 29
+
+
+def _one_neighbour(slot: str, gap: float, rel_speed: float) -> np.ndarray:
+    pts = empty_points()
+    row = 1 + SLOT_NAMES.index(slot)
+    pts[row, C["present"]], pts[row, C["gap"]], pts[row, C["rel_speed"]] = 1.0, gap, rel_speed
+    return pts
+
+
+@pytest.mark.parametrize("slot", SLOT_NAMES)
+def test_the_near_gap_channel_reads_the_gap_half_a_second_later_when_it_closes(slot: str) -> None:
+    """A leader 0.84 m ahead and 3.7 m/s slower (the case Table 3's ring run collided in) reads as an
+    overlap; the same vehicle pulling away reads its gap now; a follower mirrors the sign."""
+    cfg = ObservationConfig(near_gap_horizon=0.5)
+    near = 5 + 4 * SLOT_NAMES.index(slot) + 3
+    closing = -3.7 if slot.endswith("leader") else 3.7
+    assert encode_observation(_one_neighbour(slot, 0.84, closing), cfg)[near] == pytest.approx((0.84 - 1.85) / 5.0)
+    assert encode_observation(_one_neighbour(slot, 0.84, -closing), cfg)[near] == pytest.approx(0.84 / 5.0)
+    flat = ObservationConfig()  # the default: the gap now
+    assert encode_observation(_one_neighbour(slot, 0.84, closing), flat)[near] == pytest.approx(0.84 / 5.0)
+    other = [i for i in range(observation_size()) if i != near]
+    both = (
+        encode_observation(_one_neighbour(slot, 0.84, closing), cfg),
+        encode_observation(_one_neighbour(slot, 0.84, closing), flat),
+    )
+    assert np.array_equal(both[0][other], both[1][other])  # only the near channel looks ahead
