@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from der_ros.configuration import ConfigError, validate
 from sumo_bridge.observation import (
     POINT_FIELDS,
     SLOT_NAMES,
@@ -144,3 +145,10 @@ def test_the_near_gap_channel_reads_the_gap_half_a_second_later_when_it_closes(s
         encode_observation(_one_neighbour(slot, 0.84, closing), flat),
     )
     assert np.array_equal(both[0][other], both[1][other])  # only the near channel looks ahead
+
+
+@pytest.mark.parametrize("bad", [-0.5, 10.5, float("nan")])
+def test_a_bad_look_ahead_is_refused_naming_the_field(bad: float) -> None:
+    with pytest.raises(ConfigError, match=r"near_gap_horizon = "):
+        validate(ObservationConfig(near_gap_horizon=bad))
+        ObservationConfig(near_gap_horizon=bad).check()

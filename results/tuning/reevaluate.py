@@ -37,10 +37,11 @@ def main() -> None:
             raise SystemExit(f"{run}: train.eval_episodes_per_seed = {cfg.train.eval_episodes_per_seed}, expected 1")
         agent = DQNAgent.load(run / "checkpoint.pt")
         agent.q_net.eval()
-        envs = [make_env_from_config(cfg.env, TUNING_EVAL_SEED_BASE)]  # libsumo: one simulation per process
-        seeds = evaluation_seeds(args.episodes, TUNING_EVAL_SEED_BASE)
-        eps = run_episodes(GreedyQPolicy(agent.q_net, np.float32), envs, seeds, args.episodes)
-        for env in envs:
+        env = make_env_from_config(cfg.env, TUNING_EVAL_SEED_BASE)  # libsumo: one simulation per process
+        try:
+            seeds = evaluation_seeds(args.episodes, TUNING_EVAL_SEED_BASE)
+            eps = run_episodes(GreedyQPolicy(agent.q_net, np.float32), [env], seeds, args.episodes)
+        finally:
             env.close()
         counts = collections.Counter("caused_collision" if e.caused else e.outcome for e in eps)
         total.update(counts)
