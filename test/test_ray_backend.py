@@ -33,6 +33,7 @@ from der_ros.experiments.backends.ray_cluster import loopback_ray
 from der_ros.experiments.run_compare import run_differences
 from der_ros.experiments.suite import methods_by_name, plan_runs
 from der_ros.experiments.sweep import grid_methods, parse_grid
+from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
 
 pytestmark = pytest.mark.slow
 
@@ -133,10 +134,11 @@ def test_tiny_sweep_gives_the_local_backends_files(tmp_path: Path, ray_two_cpus:
     workdirs = {e.where["workdir"] for e in events if e.kind == "finished"}
     assert len(workdirs) == 4 and not any(Path(w).exists() for w in workdirs)
     assert all(not w.startswith(str(tmp_path)) for w in workdirs)
-    # a rerun skips the finished runs: no event, no task
+    # a rerun of the same sweep (its tuning evaluation seeds included) skips the finished runs: no event, no task
     again: list[RunEvent] = []
+    same = {"train.checkpoint_interval": 150, "replay.lam": 0.9, "train.eval_seed_base": TUNING_EVAL_SEED_BASE}
     specs = plan_runs(CARTPOLE, grid_methods(parse_grid(["replay.kind=uniform,der"])), [0, 1], tmp_path / "ray",
-                      small_cartpole(300, **{"train.checkpoint_interval": 150, "replay.lam": 0.9}))  # fmt: skip
+                      small_cartpole(300, **same))  # fmt: skip
     assert run_specs(specs, backend=RayBackend(), on_event=again.append) == [] and again == []
 
 

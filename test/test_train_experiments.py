@@ -182,6 +182,33 @@ def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
     assert not (tmp_path / "bad" / "dqn" / "seed0" / "summary.json").exists()
 
 
+def test_a_run_directory_made_with_other_settings_is_refused(tmp_path: Path) -> None:
+    from der_ros.configuration import ConfigError
+    from der_ros.experiments.backends import run_specs
+    from der_ros.experiments.suite import run_one
+
+    dqn = [m for m in PAPER_METHODS if m.name == "dqn"]
+    small = {"train.total_steps": 200, "agent.learning_starts": 50, "agent.hidden_sizes": [16],
+             "train.tensorboard": False, "train.save_final_checkpoint": False, "train.final_eval_episodes": 2}
+    cartpole = REPO / "config" / "cartpole.yaml"
+    (spec,) = plan_runs(cartpole, dqn, [0], tmp_path, small)
+    assert run_specs([spec], jobs=1)[0]["steps"] == 200
+    summary = Path(spec.run_dir) / "summary.json"
+    mtime = summary.stat().st_mtime_ns
+    # the same settings (a different log interval does not change the result): reused, not retrained
+    same = plan_runs(cartpole, dqn, [0], tmp_path, small | {"train.log_interval": 7})
+    assert run_specs(same, jobs=1) == [] and summary.stat().st_mtime_ns == mtime
+    # another gamma in the same directory: refused before any run starts, naming the field; the old run is kept
+    other = plan_runs(cartpole, dqn, [0], tmp_path, small | {"agent.gamma": 0.9})
+    with pytest.raises(ConfigError, match=r"agent\.gamma = 0\.98 there, 0\.9 now.*another --out"):
+        run_specs(other, jobs=1)
+    # an interrupted run (no summary) is not resumed under other settings either
+    summary.unlink()
+    with pytest.raises(ConfigError, match=r"agent\.gamma"):
+        run_one(other[0])
+    assert not summary.exists()
+
+
 def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
     unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""

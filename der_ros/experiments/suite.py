@@ -9,6 +9,10 @@ groups, e.g. one per Atari game). The suite is resumable:
 * a run with a ``checkpoint.pt`` but no finished summary (killed, Ctrl-C) resumes from it;
 * anything else starts fresh.
 
+Either way the run directory's ``config.yaml`` must hold the same settings (apart from where and how
+the run is written or shown, ``_NOT_RESULT_FIELDS``): a run made with other settings is refused with
+a ``ConfigError`` naming the fields, never reported under the new ones.
+
 Ctrl-C: every worker gets the SIGINT too, finishes its current step, writes a checkpoint and
 stops; queued runs are cancelled. Rerunning the same command continues where it stopped.
 
@@ -30,6 +34,7 @@ from typing import Any
 import numpy as np
 
 import der_ros
+from der_ros.configuration import ConfigError, flatten_names
 from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
 
@@ -120,7 +125,49 @@ class RunResult:
     metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
-def _finished(run_dir: Path, total_steps: int) -> bool:
+#: settings that say where and how a run is written or shown, not what it computes
+_NOT_RESULT_FIELDS = frozenset(
+    f"train.{name}"
+    for name in (
+        "run_dir",
+        "runs_root",
+        "progress",
+        "device",
+        "threads",
+        "env_process",
+        "log_interval",
+        "checkpoint_interval",
+        "tensorboard",
+        "save_final_checkpoint",
+    )
+)
+
+
+def _check_same_settings(run_dir: Path, cfg: Any) -> None:
+    """Refuse to reuse or resume a run directory made with other settings (its ``config.yaml``).
+
+    A finished run is otherwise skipped whatever the config says, so a changed config file with an
+    old ``--out`` would quietly report the old runs under the new settings.
+    """
+    saved = run_dir / "config.yaml"
+    if not saved.is_file():
+        return
+    old = flatten_names(load_experiment_config(saved).to_dict())
+    new = flatten_names(cfg.to_dict())
+    changed = sorted(k for k in old.keys() | new.keys() if k not in _NOT_RESULT_FIELDS and old.get(k) != new.get(k))
+    if changed:
+        shown = "; ".join(f"{k} = {old.get(k)!r} there, {new.get(k)!r} now" for k in changed[:5])
+        more = f" (and {len(changed) - 5} more)" if len(changed) > 5 else ""
+        raise ConfigError(
+            f"{run_dir} holds a run made with other settings: {shown}{more}. "
+            "Use another --out, or delete that run directory to redo it."
+        )
+
+
+def _finished(run_dir: Path, cfg: Any) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``cfg``; a run of other settings raises ConfigError."""
+    _check_same_settings(run_dir, cfg)
+    total_steps = cfg.train.total_steps
     path = run_dir / "summary.json"
     if not path.is_file():
         return False
@@ -155,7 +202,7 @@ def run_one(
     torch.set_num_threads(1)
     cfg = cfg if cfg is not None else _resolve(spec)
     run_dir = Path(run_dir if run_dir is not None else spec.run_dir)
-    if _finished(run_dir, cfg.train.total_steps):
+    if _finished(run_dir, cfg):
         return json.loads((run_dir / "summary.json").read_text()) | {"skipped": True}
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "command.txt").write_text(spec.command() + "\n")

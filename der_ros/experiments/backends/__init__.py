@@ -60,7 +60,7 @@ def run_specs(
     todo = []
     for spec in specs:
         cfg = _resolve(spec)  # raises ConfigError before any run starts
-        if _finished(Path(spec.run_dir), cfg.train.total_steps):
+        if _finished(Path(spec.run_dir), cfg):  # ConfigError if it holds a run of other settings
             log.info("skip finished run %s", spec.run_dir)
         else:
             todo.append(spec)
