@@ -154,6 +154,7 @@ class ProbeNode(BackgroundNode):
     def __init__(self, domain_id: int, name: str = "test_probe") -> None:
         super().__init__(name, domain_id, spin_timeout=0.05, thread_name="probe-spin")
         self.lock = threading.Lock()
+        self._clients: dict[tuple[type, str], Any] = {}
         self.start()
 
     def collect(self, topic: str, msg_type: type, qos: Any = 100, with_info: bool = False) -> list[Any]:
@@ -168,17 +169,35 @@ class ProbeNode(BackgroundNode):
     def publisher(self, topic: str, msg_type: type, qos: Any = 10) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
 
-    def call(self, srv_type: type, name: str, request: Any, timeout: float = 10.0) -> Any:
-        """Call a service and wait for the response (fails the test on timeout)."""
-        client = self.node.create_client(srv_type, name)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout):
-                pytest.fail(f"service {name} not available after {timeout} s")
+    def call(self, srv_type: type, name: str, request: Any, timeout: float = 10.0, attempt: float = 2.5) -> Any:
+        """Call a service and wait for the response (fails the test on timeout).
+
+        One client per service, kept: a new client's reply reader may not be matched yet by the
+        server's reply writer when the first request arrives (``wait_for_service`` sees the server,
+        not that), and Fast DDS then drops the response after a short wait; under load that is what
+        a fresh client per call kept hitting. So a request without a response after ``attempt``
+        seconds is sent again until ``timeout``: only for requests that may be repeated (every
+        service here: set/get parameters, pause, save a checkpoint).
+        """
+        key = (srv_type, name)
+        client = self._clients.get(key)
+        if client is None:
+            client = self._clients[key] = self.node.create_client(srv_type, name)
+        deadline = time.monotonic() + timeout
+        if not client.wait_for_service(timeout_sec=timeout):
+            pytest.fail(f"service {name} not available after {timeout} s")
+        sent = 0
+        while True:
             future = client.call_async(request)
-            wait_for(future.done, timeout, what=f"response of {name}")
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            sent += 1
+            until = min(deadline, time.monotonic() + attempt)
+            while not future.done() and time.monotonic() < until:
+                time.sleep(0.01)
+            if future.done():
+                return future.result()
+            client.remove_pending_request(future)
+            if time.monotonic() >= deadline:
+                pytest.fail(f"no response of {name} after {timeout} s ({sent} requests)")
 
     def set_parameters(self, node_name: str, values: Mapping[str, Any], timeout: float = 10.0) -> list[Any]:
         """Call ``/<node>/set_parameters``; returns the list of SetParametersResult."""

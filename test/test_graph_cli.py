@@ -100,6 +100,9 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     params = yaml.safe_load((run_dir / "params.yaml").read_text())
     assert params["bridge_node"]["ros__parameters"]["max_steps"] == steps
     assert params["agent_node"]["ros__parameters"]["seed"] == 3
+    # the agent is "ready" (and the bridge started) only once the recorder matched its command writer
+    assert params["agent_node"]["ros__parameters"]["min_command_subscribers"] == 1
+    assert re.search(r"agent ready", (run_dir / "logs" / "agent_node.log").read_text())
 
     bag = run_dir / "bag"
     meta = bag_meta(bag)

@@ -150,11 +150,14 @@ def test_agent_answers_every_state_learns_and_fills_h2(ros_graph, tmp_path):  # 
 
 def test_agent_rejects_bad_messages_and_parameters_without_a_crash(ros_graph):  # noqa: F811
     b = FakeBridge(ros_graph, AGENT_PARAMS)
-    # a state whose layout is not the contract's, and a reward with a NaN
-    bad = mc.points_to_cloud(b.points(), 0)
+    # one valid episode first: its answers show both sides of every topic matched, so nothing below is lost
+    assert len(b.run_episode()) == EPISODE - 1
+    # a state whose layout is not the contract's, and a reward with a NaN (at the next step's stamp)
+    stamp = b.k * STEP_NS
+    bad = mc.points_to_cloud(b.points(), stamp)
     bad.fields = bad.fields[:-1] + [PointField(name="bogus", offset=88, datatype=PointField.FLOAT64, count=1)]
     b.pub_state.publish(bad)
-    nan_reward = mc.make_reward(0, 0.0, False, False)
+    nan_reward = mc.make_reward(stamp, 0.0, False, False)
     nan_reward.vector.x = float("nan")
     b.pub_reward.publish(nan_reward)
     # then a valid episode still works
@@ -178,3 +181,27 @@ def test_agent_rejects_bad_messages_and_parameters_without_a_crash(ros_graph):  
     assert b.probe.get_parameters("agent_node", ["replay.lam"]) == {"replay.lam": 0.25}
     assert len(b.run_episode()) == EPISODE - 1
     assert b.proc.poll() is None
+
+
+def test_agent_reports_ready_only_once_its_commands_have_a_subscriber(ros_graph):  # noqa: F811
+    # der graph starts the recorder, then the agent, and waits for "agent ready" before the bridge: with
+    # min_command_subscribers the line waits until the command writer is matched, so no command goes unrecorded
+    probe = ros_graph.probe
+    proc = ros_graph.start_node("der_ros.nodes.agent_node",
+                                params={**AGENT_PARAMS, "warm_up": False, "min_command_subscribers": 1})
+    wait_for(lambda: probe.node.count_publishers("lane_change_cmd"), 30, what="the agent's command publisher",
+             procs=[proc])
+    time.sleep(1.0)
+    assert "agent ready" not in proc.output()
+    probe.collect("lane_change_cmd", Joy)
+    wait_for(lambda: "agent ready" in proc.output(), 20, what="agent ready after a subscriber", procs=[proc])
+    assert "starting anyway" not in proc.output()
+
+    # nobody subscribes: ready anyway after command_wait_timeout, with a warning that says why
+    alone = ros_graph.start_node("der_ros.nodes.agent_node", name="agent_alone",
+                                 params={**AGENT_PARAMS, "warm_up": False, "min_command_subscribers": 3,
+                                         "command_wait_timeout": 1.0})
+    wait_for(lambda: "agent ready" in alone.output(), 30, what="agent ready after the timeout", procs=[alone])
+    out = alone.output()
+    assert "expected min_command_subscribers = 3; starting anyway" in out
+    assert out.index("starting anyway") < out.index("agent ready")

@@ -91,6 +91,9 @@ def _deserialize(data: bytes, msg_type: type) -> Any:
 _DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted",
                   "stream_jumps", "abandoned_episodes")
 _DROP_LOG_PERIOD = 5.0
+#: start-up gate (min_command_subscribers): check period, and consecutive matched checks needed
+_READY_CHECK_S = 0.05
+_READY_TICKS = 4
 #: a stream jump (restarted bridge) is reported sooner
 _JUMP_LOG_PERIOD = 1.0
 
@@ -166,10 +169,33 @@ class AgentNode(Node):
         self.create_timer(_JUMP_LOG_PERIOD, self._report_drops, clock=RclClock(clock_type=ClockType.STEADY_TIME))
         self.create_service(Trigger, "agent/save_checkpoint", self._srv_save)
         self.create_service(SetBool, "agent/set_paused", self._srv_pause)
-        self.get_logger().info(
+        self._ready_line = (
             f"agent ready: obs {tuple(obs_shape)}, replay {self.agent.replay_cfg.kind}, "
             f"{'evaluation' if self.learner.paused else 'training'} mode, sender id {self.sender_id}"
         )
+        if self.cfg.min_command_subscribers:
+            self._matched_ticks = 0
+            self._ready_deadline = time.monotonic() + self.cfg.command_wait_timeout
+            self._ready_timer = self.create_timer(_READY_CHECK_S, self._maybe_ready,
+                                                  clock=RclClock(clock_type=ClockType.STEADY_TIME))  # fmt: skip
+        else:
+            self.get_logger().info(self._ready_line)
+
+    def _maybe_ready(self) -> None:
+        """'agent ready' once the command publisher is matched (a recorder started before us would
+        otherwise miss the first commands while its reader is still discovering our writer)."""
+        need = self.cfg.min_command_subscribers
+        matched = self.pub_cmd.get_subscription_count()
+        self._matched_ticks = self._matched_ticks + 1 if matched >= need else 0
+        timed_out = time.monotonic() >= self._ready_deadline
+        if self._matched_ticks < _READY_TICKS and not timed_out:
+            return
+        self._ready_timer.cancel()
+        if self._matched_ticks < _READY_TICKS:
+            self.get_logger().warning(
+                f"{COMMAND} has {matched} matched subscription(s) after {self.cfg.command_wait_timeout:g} s, "
+                f"expected min_command_subscribers = {need}; starting anyway")
+        self.get_logger().info(self._ready_line)
 
     def _warm_up(self, agent_cls: Any, obs_shape: tuple[int, ...]) -> None:
         """Exercise every lazy path of the learner once, on a throw-away agent with the same configs.

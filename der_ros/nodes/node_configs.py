@@ -80,6 +80,12 @@ class AgentNodeConfig:
         "+-100 plus a log speed), and they would overflow the squared TD loss", low=0.0, low_inclusive=False,
         high=3.0e38)
     torch_threads: int = param(1, "torch intra-op threads (1 keeps the node from competing with SUMO)", low=1)
+    min_command_subscribers: int = param(
+        0, "start-up: the node reports 'agent ready' only once its lane_change_cmd publisher is matched by this many "
+        "subscriptions, seen on 4 checks 0.05 s apart (der graph sets 1 when it records the commands: the recorder, "
+        "started first, so the bag holds the first command too; 0 = ready at once)", low=0)
+    command_wait_timeout: float = param(
+        30.0, "seconds to wait for min_command_subscribers before reporting ready anyway (with a warning)", low=0.0)
     warm_up: bool = param(
         True, "before joining the graph, run act/observe/learn on a scratch agent so that lazy set-up (the replay's "
         "numba kernels, torch autograd) does not stall the first real steps past the bridge's command timeout")

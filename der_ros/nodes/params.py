@@ -56,7 +56,7 @@ from der_ros.configuration import (
     to_dict,
     unflatten_names,
 )
-from der_ros.contract import STATE, default_record_topics
+from der_ros.contract import COMMAND, STATE, default_record_topics
 from der_ros.nodes.node_configs import NODE_SECTIONS
 from der_ros.nodes.param_check import (
     argv_origin,
@@ -371,6 +371,10 @@ def build_graph_params(
         str(t).lstrip("/") for t in rec.get("topics", default_record_topics()) if isinstance(t, str)]
     if records_state and "min_subscribers" not in extra.get("bridge_node", {}):
         put("bridge_node", "min_subscribers", 2, "der graph")
+    records_commands = rec.get("all_topics") or COMMAND in [
+        str(t).lstrip("/") for t in rec.get("topics", default_record_topics()) if isinstance(t, str)]
+    if records_commands and "min_command_subscribers" not in extra.get("agent_node", {}):
+        put("agent_node", "min_command_subscribers", 1, "der graph")
     for node in NODE_SECTIONS:  # every value as the node will check it: one line, before any process starts
         params[node]["ros__parameters"] = check_node_parameters(node, params[node]["ros__parameters"], origins[node])
     return params
