@@ -166,3 +166,28 @@ def test_a_failing_sumo_run_closes_its_simulation(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="cnn"):
         train(bad, run_dir=tmp_path / "bad")  # fails building the agent, after the env is up
     assert libsumo_in_use() is None
+
+
+def test_progress_eta_counts_parallel_runs(caplog: pytest.LogCaptureFixture) -> None:
+    """Two runs at a time, 100 s each: when the first ends, the other three need 100 s more (the
+    running one ends now, then the last two side by side), not elapsed / done x remaining = 300 s."""
+    specs = plan_runs("cfg.yaml", PAPER_METHODS[:1], [0, 1, 2, 3], "/out")
+    now = [0.0]
+    progress = SuiteProgress(total=4, stream=io.StringIO(), clock=lambda: now[0])
+    with caplog.at_level(logging.INFO, logger="der_ros.experiments.progress"):
+        progress(RunEvent("started", specs[0]))
+        progress(RunEvent("started", specs[1]))
+        now[0] = 100.0
+        progress(RunEvent("finished", specs[0], summary={"steps": 1}))
+        assert progress.eta_s() == pytest.approx(100.0)
+        progress(RunEvent("started", specs[2]))
+        now[0] = 130.0
+        progress(RunEvent("finished", specs[1], summary={"steps": 1}))  # mean 115 s: run 2 has 85 s left
+        assert progress.eta_s() == pytest.approx(115.0)  # run 3 starts now on the free slot
+        progress(RunEvent("started", specs[3]))
+        progress(RunEvent("failed", specs[2], error=ValueError("bad")))  # a failure is no duration
+        assert progress.eta_s() == pytest.approx(115.0)
+        now[0] = 400.0  # overdue: the ETA does not go negative
+        assert progress.eta_s() == 0.0
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines[2].endswith("ETA 1:40")

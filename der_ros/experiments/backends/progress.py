@@ -2,16 +2,20 @@
 
 On a terminal it is a rich progress bar (one line for the suite, finished runs printed above it);
 otherwise (CI, ``nohup``, a log file) plain log lines, one per event that changes the counts.
-The ETA assumes the remaining runs take as long as the finished ones did on average, in parallel
-as now: elapsed / done x remaining.
+The ETA assumes every run takes as long as the finished ones did on average (from its own start to
+its end) and that as many run at once as ever did so far: the runs still waiting are handed to the
+first free slot after the running ones' remaining time. (Elapsed / done x remaining would count
+parallel runs as sequential: with 2 slots, the first finished run doubles it.)
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 import math
 import sys
 import time
+from collections.abc import Callable
 from typing import Any, TextIO
 
 from rich.console import Console
@@ -44,14 +48,18 @@ class SuiteProgress:
     """Counts runs from :class:`RunEvent` s and shows them; call it with each event."""
 
     def __init__(self, total: int, finished_before: int = 0, stream: TextIO | None = None,
-                 live: bool | None = None) -> None:  # fmt: skip
+                 live: bool | None = None, clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
         self.total = total
         self.finished_before = finished_before
         self.done = 0
         self.failed = 0
         self.retried = 0
         self.running: set[str] = set()
-        self.t0 = time.monotonic()
+        self._clock = clock
+        self.t0 = clock()
+        self._started: dict[str, float] = {}  # running run -> when it started
+        self._durations: list[float] = []  # start to end of every finished run
+        self.slots = 0  # the most runs seen running at once
         stream = stream if stream is not None else sys.stderr
         self._progress: Progress | None = None
         if live if live is not None else stream.isatty():
@@ -73,10 +81,22 @@ class SuiteProgress:
         return text + (f", {self.retried} retried" if self.retried else "")
 
     def eta_s(self) -> float:
-        """Seconds left, from the mean pace so far (inf before the first run ends)."""
-        if self.done == 0:
-            return math.inf
-        return (time.monotonic() - self.t0) / self.done * (self.total - self.done)
+        """Seconds left (inf before the first run ends; see the module docstring)."""
+        now = self._clock()
+        if not self._durations:  # runs ended, none with a start seen: the mean pace so far
+            return math.inf if self.done == 0 else (now - self.t0) / self.done * (self.total - self.done)
+        mean = sum(self._durations) / len(self._durations)
+        free = [max(mean - (now - self._started[key]), 0.0) for key in self.running if key in self._started]
+        free += [0.0] * max(self.slots - len(free), 0)
+        finish = max(free, default=0.0)
+        if not free:
+            free = [0.0]
+        heapq.heapify(free)
+        for _ in range(max(self.total - self.done - len(self.running), 0)):
+            end = heapq.heappop(free) + mean
+            finish = max(finish, end)
+            heapq.heappush(free, end)
+        return finish
 
     def eta_text(self) -> str:
         return "-" if self.done == 0 else format_duration(self.eta_s())
@@ -86,6 +106,8 @@ class SuiteProgress:
         line: str | None = None
         if event.kind == "started":
             self.running.add(key)
+            self._started[key] = self._clock()
+            self.slots = max(self.slots, len(self.running))
             where = event.where.get("host") or ""
             if event.where.get("node"):
                 where = f"{where} (node {str(event.where['node'])[:8]}, pid {event.where.get('pid')})"
@@ -96,15 +118,20 @@ class SuiteProgress:
             )
         elif event.kind == "retry":
             self.running.discard(key)
+            self._started.pop(key, None)
             self.retried += 1
             origin = f"from its checkpoint at step {event.step}" if event.step else "from the start"
             line = f"retry {run_label(event.spec)} {origin} (attempt {event.attempt + 1}): {event.error}"
         elif event.kind == "finished":
             self.running.discard(key)
+            start = self._started.pop(key, None)
+            if start is not None:
+                self._durations.append(self._clock() - start)
             self.done += 1
             line = self._finished_line(event)
         elif event.kind == "failed":
             self.running.discard(key)
+            self._started.pop(key, None)
             self.done += 1
             self.failed += 1
             line = f"run {event.spec.run_dir} failed: {type(event.error).__name__}: {event.error}"
@@ -130,6 +157,6 @@ class SuiteProgress:
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
-        wall = time.monotonic() - self.t0
+        wall = self._clock() - self.t0
         log.info("%d runs done in %s (%d failed, %d retried; %d finished before)", self.done,
                  format_duration(wall), self.failed, self.retried, self.finished_before)  # fmt: skip
