@@ -45,7 +45,8 @@ right, within ``ObservationConfig.neighbour_range`` metres of gap (the paper's 3
 
 Observation vector (``encode_observation``)
 -------------------------------------------
-float32, shape ``(EGO_FEATURES + 3 * len(SLOT_NAMES),)``, every entry in [-1, 1]:
+float32, shape ``(observation_size(cfg),)``, every entry in [-1, 1]; 5 + 4 x 6 = 29 entries, 35
+with the deceleration block:
 
 * ego: ``speed / speed_scale`` (clipped to [0, 1]); ``lane / (max_lanes - 1)``;
   ``clip(target_lane - lane, -1, 1)`` (which way the target lies, 0 once on it);
@@ -55,7 +56,12 @@ float32, shape ``(EGO_FEATURES + 3 * len(SLOT_NAMES),)``, every entry in [-1, 1]
   clipped to [-1, 1] (0.0 for an empty slot); ``near_gap / near_gap_range`` clipped to [-1, 1]
   (1.0 for an empty slot), where ``near_gap = min(gap, gap in near_gap_horizon seconds)`` and the
   gap in ``h`` seconds, both keeping their speeds, is ``gap + rel_speed * h`` for a leader and
-  ``gap - rel_speed * h`` for a follower (``near_gap = gap`` when ``h = 0``).
+  ``gap - rel_speed * h`` for a follower (``near_gap = gap`` when ``h = 0``);
+* with ``required_decel_scale = b > 0``, one more entry per slot, in ``SLOT_NAMES`` order after
+  the slot blocks: the constant deceleration that keeps the gap to that neighbour from closing,
+  ``closing speed^2 / (2 * gap) / b`` clipped to [0, 1], where the closing speed is
+  ``-rel_speed`` for a leader (the ego is faster) and ``rel_speed`` for a follower; 0.0 when the
+  gap opens or holds (or the slot is empty), 1.0 when the gap is <= 0 (an overlap).
 
 The present flag keeps "empty" distinguishable from "a vehicle exactly at the range". The second,
 short-range gap channel gives the network resolution where a lane change is decided: whether the
@@ -68,6 +74,18 @@ configs) a leader 0.8 m ahead but 3.7 m/s slower reads as an overlap, as it is o
 change. The default, 0, reads the gap now, and every shipped config uses it: on the ring's tuning
 seeds a 0.5 s look-ahead did not reduce the DQN's caused collisions (results/tuning/ring_dqn.md,
 sixth session).
+
+The required-deceleration block is the safety quantity of gap-acceptance models such as MOBIL
+(Kesting, Treiber and Helbing 2007): how hard the ego must brake behind its new leader, or its new
+follower behind it, for a lane change to stay collision-free. On the ring it separates the outcome
+of a commanded change nearly in one threshold -- below ~6 m/s^2 almost every change succeeds,
+above ~8 m/s^2 almost every change collides (results/tuning/ring_dqn.md, tenth session) -- where
+in (gap, rel_speed) the boundary is a curve the network must learn from the few changes tried near
+it: a leader 0.84 m ahead and 3.7 m/s slower needs 8.1 m/s^2 (collides), one 3.4 m ahead and
+8 m/s slower 9.4 m/s^2 (collides), one 3 m ahead and 3.7 m/s slower 2.3 m/s^2 (safe).
+The default, 0, leaves the block out, and every shipped config does: with it (scale 9 m/s^2) the
+ring's DQN caused more collisions on its tuning seeds, not fewer (12 against 2 on seeds 100-104,
+results/tuning/ring_dqn.md, tenth session).
 """
 
 from __future__ import annotations
@@ -162,8 +180,17 @@ class ObservationConfig:
         high=10.0,
     )
 
+    required_decel_scale: float = param(
+        0.0,
+        "deceleration in m/s^2 that maps to 1.0 in the required-deceleration block (closing speed^2 / "
+        "(2 gap) per neighbour slot, 1.0 for an overlap; SUMO's emergency braking of a passenger car is "
+        "9 m/s^2); 0 leaves the block out of the observation",
+        low=0.0,
+        high=100.0,
+    )
+
     def check(self) -> None:
-        for name in ("neighbour_range", "near_gap_range", "near_gap_horizon"):
+        for name in ("neighbour_range", "near_gap_range", "near_gap_horizon", "required_decel_scale"):
             if not np.isfinite(getattr(self, name)):
                 raise ConfigError(f"{name} = {getattr(self, name)!r}, expected a finite number")
 
@@ -178,16 +205,15 @@ def empty_points() -> np.ndarray:
     return pts
 
 
-def observation_size() -> int:
-    """Length of the observation vector."""
-    return len(EGO_FEATURES) + len(SLOT_FEATURES) * len(SLOT_NAMES)
+def observation_size(cfg: ObservationConfig | None = None) -> int:
+    """Length of the observation vector (``cfg`` None: the defaults, without the deceleration block)."""
+    n = len(EGO_FEATURES) + len(SLOT_FEATURES) * len(SLOT_NAMES)
+    return n + len(SLOT_NAMES) if cfg is not None and cfg.required_decel_scale > 0.0 else n
 
 
 def observation_space(cfg: ObservationConfig) -> gym.spaces.Box:
     """The gymnasium space of :func:`encode_observation`'s output (every entry in [-1, 1])."""
-    del cfg  # the shape and bounds do not depend on the scales
-    n = observation_size()
-    return gym.spaces.Box(low=-1.0, high=1.0, shape=(n,), dtype=np.float32)
+    return gym.spaces.Box(low=-1.0, high=1.0, shape=(observation_size(cfg),), dtype=np.float32)
 
 
 def encode_observation(points: np.ndarray, cfg: ObservationConfig) -> np.ndarray:
@@ -243,4 +269,19 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
             out += (1.0, 1.0 if 1.0 < g else g, 1.0 if 1.0 < r else r, 1.0 if 1.0 < n else n)
         else:
             out += (0.0, 1.0, 0.0, 1.0)
+    b = cfg.required_decel_scale
+    if b > 0.0:
+        for row, leads in zip(rows[1:], _IS_LEADER):
+            if row[_PRESENT] > 0.5:
+                gap = row[_GAP]
+                closing = -row[_REL] if leads else row[_REL]
+                if gap <= 0.0:
+                    out.append(1.0)
+                elif closing > 0.0:
+                    d = closing * closing / (2.0 * gap) / b
+                    out.append(1.0 if d > 1.0 else d)
+                else:
+                    out.append(0.0)
+            else:
+                out.append(0.0)
     return np.array(out, dtype=np.float32)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from der_ros.agent.config import DQNConfig
+from der_ros.configuration import from_dict
 from der_ros.train.config import EnvConfig
 from der_ros.train.evaluation import (
     EVAL_SEED_BASE,
@@ -29,9 +30,9 @@ from der_ros.train.evaluation import (
     policy_files,
     write_eval_row,
 )
-from sumo_bridge.observation import observation_size
+from sumo_bridge.observation import ObservationConfig, observation_size
 
-__all__ = ["GraphEvaluator", "scenario_env_config"]
+__all__ = ["GraphEvaluator", "observation_shape", "scenario_env_config"]
 
 log = logging.getLogger("der.graph")
 
@@ -63,6 +64,14 @@ def scenario_env_config(bridge_params: dict[str, Any]) -> EnvConfig:
     return EnvConfig(id=_ENV_IDS[network], kwargs={"scenario": scenario})
 
 
+def observation_shape(env_cfg: EnvConfig) -> tuple[int]:
+    """The observation shape of a lane-change env config (its ``scenario.observation`` fields decide
+    whether the required-deceleration block is in)."""
+    scenario = env_cfg.kwargs.get("scenario") or {}
+    obs_cfg = from_dict(ObservationConfig, scenario.get("observation"), source="scenario.observation")
+    return (observation_size(obs_cfg),)
+
+
 class GraphEvaluator:
     """Evaluates a running graph's policy snapshots and, at the end, its final checkpoint."""
 
@@ -81,7 +90,7 @@ class GraphEvaluator:
         self.run_dir, self.policy_dir = Path(run_dir), Path(policy_dir)
         self.csv = self.run_dir / EVALUATIONS_CSV
         self._evaluator = make_evaluator(
-            self.env_cfg, (observation_size(),), "float32", int(agent.get("n_actions", 3)),
+            self.env_cfg, observation_shape(self.env_cfg), "float32", int(agent.get("n_actions", 3)),
             str(agent.get("agent.network", defaults.network)), list(agent.get("agent.hidden_sizes", defaults.hidden_sizes)),
             self.per_seed, EVAL_SEED_BASE, mode="process",
         )  # fmt: skip

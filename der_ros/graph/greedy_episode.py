@@ -27,11 +27,10 @@ import numpy as np
 from der_ros.agent.config import DQNConfig
 from der_ros.bag.episode_recording import record_episode
 from der_ros.bag.render import render_bag
-from der_ros.graph.evaluation import scenario_env_config
+from der_ros.graph.evaluation import observation_shape, scenario_env_config
 from der_ros.train.config import EnvConfig
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
-from sumo_bridge.observation import observation_size
 
 __all__ = ["GreedyEpisode", "GIF_NAME", "BAG_NAME", "greedy_episode_gif", "watchable_env_config"]
 
@@ -67,7 +66,7 @@ def _record_and_render(checkpoint: str, env_cfg: EnvConfig, network: str, hidden
 
     torch.set_num_threads(1)
     state = read_checkpoint(checkpoint)["agent"]
-    net = make_q_network((observation_size(),), np.float32, n_actions, network, hidden)
+    net = make_q_network(observation_shape(env_cfg), np.float32, n_actions, network, hidden)
     net.load_state_dict(state["q_net"])
     net.eval()
     policy = GreedyQPolicy(net, np.dtype(np.float32))
