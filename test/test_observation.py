@@ -173,6 +173,12 @@ def test_a_bad_look_ahead_is_refused_naming_the_field(bad: float) -> None:
         ObservationConfig(near_gap_horizon=bad).check()
 
 
+@pytest.mark.parametrize("bad", [-1.0, 100.5, float("nan"), float("inf")])
+def test_a_bad_deceleration_scale_is_refused_naming_the_field(bad: float) -> None:
+    with pytest.raises(ConfigError, match=r"required_decel_scale = "):
+        validate(ObservationConfig(required_decel_scale=bad))
+
+
 @pytest.mark.parametrize("slot", SLOT_NAMES)
 def test_the_required_deceleration_block(slot: str) -> None:
     """closing speed^2 / (2 gap) per slot, scaled and clipped; a leader closes when it is slower, a follower
