@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
+from der_ros.configuration import from_dict
 from der_ros.experiments.baselines import _network
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
@@ -84,7 +85,8 @@ def score(data: Path, runs: list[Path]) -> None:
     total_bad = total_safe = 0
     for run in runs:
         cfg = load_experiment_config(run / "config.yaml")
-        obs_cfg = ObservationConfig(**cfg.env.kwargs.get("scenario", {}).get("observation", {}))
+        obs_cfg = from_dict(ObservationConfig, (cfg.env.kwargs.get("scenario") or {}).get("observation"),
+                            source=f"{run}/config.yaml scenario.observation")  # fmt: skip
         x = np.stack([encode_observation(p, obs_cfg) for p in points]).astype(np.float32)
         net = DQNAgent.load(run / "checkpoint.pt").q_net.eval()
         with torch.no_grad():
