@@ -209,6 +209,40 @@ def test_a_run_directory_made_with_other_settings_is_refused(tmp_path: Path) -> 
     assert not summary.exists()
 
 
+def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path) -> None:
+    """Env kwargs are stored as written: a run made before a scenario field existed has no such key.
+    The same-settings check completes the scenario with its defaults, so such a run is reused when
+    the field is at its default now, and refused, naming the field, when it is not."""
+    import yaml
+
+    from der_ros.configuration import ConfigError
+    from der_ros.experiments.suite import _check_same_settings
+    from der_ros.train.config import load_experiment_config
+
+    ring = REPO / "config" / "ring.yaml"
+    data = load_experiment_config(ring).to_dict()
+    scenario = data["env"]["kwargs"]["scenario"]
+    assert "required_decel_scale" not in scenario["observation"]  # the shipped config leaves it out
+    # an older run: these fields did not exist yet (false / 0.0 = the behaviour before them)
+    scenario.pop("commit_on_success")
+    scenario["observation"].pop("near_gap_horizon")
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    old_rule = "env.kwargs.scenario.commit_on_success=false"
+    for explicit in ("env.kwargs.scenario.observation.near_gap_horizon=0.0",
+                     "env.kwargs.scenario.observation.required_decel_scale=0"):  # fmt: skip
+        _check_same_settings(tmp_path, load_experiment_config(ring, [explicit, old_rule]))
+    with pytest.raises(ConfigError, match=r"scenario\.commit_on_success = False there, True now"):
+        _check_same_settings(tmp_path, load_experiment_config(ring))
+    look_ahead = "env.kwargs.scenario.observation.near_gap_horizon=0.5"
+    with pytest.raises(ConfigError, match=r"near_gap_horizon = 0\.0 there, 0\.5 now"):
+        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, look_ahead]))
+    # a field the current code does not know is compared as written, so it shows up as a change
+    scenario["no_such_field"] = 1
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"no_such_field = 1 there, None now"):
+        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule]))
+
+
 def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
     unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""

@@ -10,8 +10,9 @@ groups, e.g. one per Atari game). The suite is resumable:
 * anything else starts fresh.
 
 Either way the run directory's ``config.yaml`` must hold the same settings (apart from where and how
-the run is written or shown, ``_NOT_RESULT_FIELDS``): a run made with other settings is refused with
-a ``ConfigError`` naming the fields, never reported under the new ones.
+the run is written or shown, ``_NOT_RESULT_FIELDS``; a SUMO scenario field missing there, added
+after the run was made, counts as its default): a run made with other settings is refused with a
+``ConfigError`` naming the fields, never reported under the new ones.
 
 Ctrl-C: every worker gets the SIGINT too, finishes its current step, writes a checkpoint and
 stops; queued runs are cancelled. Rerunning the same command continues where it stopped.
@@ -37,6 +38,10 @@ import der_ros
 from der_ros.configuration import ConfigError, flatten_names
 from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
+
+#: the lane-change env ids (sumo_bridge.ENV_IDS), ring then urban; not imported so that suites of
+#: other envs need no SUMO
+_SUMO_ENV_IDS = ("der_ros/LaneChangeRing-v0", "der_ros/LaneChangeUrban-v0")
 
 __all__ = [
     "Method",
@@ -143,6 +148,30 @@ _NOT_RESULT_FIELDS = frozenset(
 )
 
 
+def _resolved_settings(cfg: Any) -> dict[str, Any] | None:
+    """``cfg.to_dict()`` with a SUMO scenario completed by its defaults (None: the current code
+    cannot read that scenario, e.g. a field since removed).
+
+    The env's keyword arguments are stored as written, so a scenario field added after a run was made
+    is missing from that run's ``config.yaml``; completed here, "missing" and "the default" compare
+    equal (new fields default to the behaviour that came before them).
+    """
+    data = cfg.to_dict()
+    network = dict(zip(_SUMO_ENV_IDS, ("ring", "urban"))).get(cfg.env.id)
+    kwargs = data["env"]["kwargs"]
+    if network is None or not isinstance(kwargs, dict) or set(kwargs) - {"scenario", "render_mode"}:
+        return data
+    from der_ros.configuration import to_dict
+    from sumo_bridge.scenario import scenario_from_kwargs
+
+    try:
+        scenario = to_dict(scenario_from_kwargs(network, dict(kwargs.get("scenario") or {})))
+    except ConfigError:
+        return None
+    data["env"]["kwargs"] = {**kwargs, "scenario": scenario}
+    return data
+
+
 def _check_same_settings(run_dir: Path, cfg: Any) -> None:
     """Refuse to reuse or resume a run directory made with other settings (its ``config.yaml``).
 
@@ -152,8 +181,11 @@ def _check_same_settings(run_dir: Path, cfg: Any) -> None:
     saved = run_dir / "config.yaml"
     if not saved.is_file():
         return
-    old = flatten_names(load_experiment_config(saved).to_dict())
-    new = flatten_names(cfg.to_dict())
+    saved_cfg = load_experiment_config(saved)
+    old, new = _resolved_settings(saved_cfg), _resolved_settings(cfg)
+    if old is None or new is None:  # one side unreadable today: compare both as written
+        old, new = saved_cfg.to_dict(), cfg.to_dict()
+    old, new = flatten_names(old), flatten_names(new)
     changed = sorted(k for k in old.keys() | new.keys() if k not in _NOT_RESULT_FIELDS and old.get(k) != new.get(k))
     if changed:
         shown = "; ".join(f"{k} = {old.get(k)!r} there, {new.get(k)!r} now" for k in changed[:5])
