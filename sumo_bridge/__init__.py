@@ -8,6 +8,8 @@ import gymnasium as _gym
 
 #: gymnasium ids registered on import (paper section 5.1: ring network and Yeongdong Bridge).
 ENV_IDS: tuple[str, ...] = ("der_ros/LaneChangeRing-v0", "der_ros/LaneChangeUrban-v0")
+#: the scenario network (``ScenarioConfig.network``) of each registered id
+ENV_NETWORKS: dict[str, str] = dict(zip(ENV_IDS, ("ring", "urban")))
 
 for _env_id, _entry in zip(ENV_IDS, ("make_ring_env", "make_urban_env")):
     if _env_id not in _gym.registry:

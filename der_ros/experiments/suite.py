@@ -35,13 +35,9 @@ from typing import Any
 import numpy as np
 
 import der_ros
-from der_ros.configuration import ConfigError, flatten_names
+from der_ros.configuration import ConfigError, flatten_names, to_dict
 from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
-
-#: the lane-change env ids (sumo_bridge.ENV_IDS), ring then urban; not imported so that suites of
-#: other envs need no SUMO
-_SUMO_ENV_IDS = ("der_ros/LaneChangeRing-v0", "der_ros/LaneChangeUrban-v0")
 
 __all__ = [
     "Method",
@@ -156,12 +152,13 @@ def _resolved_settings(cfg: Any) -> dict[str, Any] | None:
     is missing from that run's ``config.yaml``; completed here, "missing" and "the default" compare
     equal (new fields default to the behaviour that came before them).
     """
+    from sumo_bridge import ENV_NETWORKS  # gymnasium registrations only; SUMO is not loaded
+
     data = cfg.to_dict()
-    network = dict(zip(_SUMO_ENV_IDS, ("ring", "urban"))).get(cfg.env.id)
+    network = ENV_NETWORKS.get(cfg.env.id)
     kwargs = data["env"]["kwargs"]
     if network is None or not isinstance(kwargs, dict) or set(kwargs) - {"scenario", "render_mode"}:
         return data
-    from der_ros.configuration import to_dict
     from sumo_bridge.scenario import scenario_from_kwargs
 
     try:
