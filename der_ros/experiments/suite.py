@@ -38,6 +38,8 @@ import der_ros
 from der_ros.configuration import ConfigError, flatten_names, to_dict
 from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
+from sumo_bridge import ENV_NETWORKS
+from sumo_bridge.scenario import scenario_from_kwargs
 
 __all__ = [
     "Method",
@@ -152,15 +154,11 @@ def _resolved_settings(cfg: Any) -> dict[str, Any] | None:
     is missing from that run's ``config.yaml``; completed here, "missing" and "the default" compare
     equal (new fields default to the behaviour that came before them).
     """
-    from sumo_bridge import ENV_NETWORKS  # gymnasium registrations only; SUMO is not loaded
-
     data = cfg.to_dict()
     network = ENV_NETWORKS.get(cfg.env.id)
     kwargs = data["env"]["kwargs"]
     if network is None or not isinstance(kwargs, dict) or set(kwargs) - {"scenario", "render_mode"}:
         return data
-    from sumo_bridge.scenario import scenario_from_kwargs
-
     try:
         scenario = to_dict(scenario_from_kwargs(network, dict(kwargs.get("scenario") or {})))
     except ConfigError:
