@@ -8,8 +8,9 @@ import gymnasium as _gym
 
 #: gymnasium ids registered on import (paper section 5.1: ring network and Yeongdong Bridge).
 ENV_IDS: tuple[str, ...] = ("der_ros/LaneChangeRing-v0", "der_ros/LaneChangeUrban-v0")
-#: the scenario network (``ScenarioConfig.network``) of each registered id
+#: the scenario network (``ScenarioConfig.network``) of each registered id, and the id of each network
 ENV_NETWORKS: dict[str, str] = dict(zip(ENV_IDS, ("ring", "urban")))
+NETWORK_ENV_IDS: dict[str, str] = {network: env_id for env_id, network in ENV_NETWORKS.items()}
 
 for _env_id, _entry in zip(ENV_IDS, ("make_ring_env", "make_urban_env")):
     if _env_id not in _gym.registry:

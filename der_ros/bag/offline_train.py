@@ -34,6 +34,7 @@ from der_ros.configuration import ConfigError, flatten_names, load_yaml, unflatt
 from der_ros.contract import EPISODE_COLLISION, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
 from der_ros.replay.config import ReplayConfig
 from der_ros.train.envs import make_env
+from sumo_bridge import NETWORK_ENV_IDS
 from sumo_bridge.observation import ObservationConfig
 
 __all__ = [
@@ -49,7 +50,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ENV = "der_ros/LaneChangeRing-v0"
+DEFAULT_ENV = NETWORK_ENV_IDS["ring"]
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
@@ -253,7 +254,7 @@ def run_train(args: argparse.Namespace) -> int:
     scenario = recorded_scenario(args.bags[0]) if env_id is None else None
     if env_id is None:
         network = (scenario or {}).pop("network", "ring")
-        env_id = "der_ros/LaneChangeUrban-v0" if network == "urban" else DEFAULT_ENV
+        env_id = NETWORK_ENV_IDS.get(network, DEFAULT_ENV)
         if scenario:
             env_kwargs = {"scenario": scenario}
             log.info("evaluating on the recorded scenario (%s, from params.yaml beside the bag)", env_id)

@@ -53,6 +53,7 @@ from der_ros.train.evaluation import (
     evaluation_seeds,
     run_episodes,
 )
+from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
 
 __all__ = [
@@ -90,11 +91,7 @@ class GapAcceptanceParams:
 
 def _network(env_cfg: EnvConfig) -> str | None:
     """'ring' / 'urban' for the SUMO ids, None otherwise."""
-    if env_cfg.id == "der_ros/LaneChangeRing-v0":
-        return "ring"
-    if env_cfg.id == "der_ros/LaneChangeUrban-v0":
-        return "urban"
-    return None
+    return ENV_NETWORKS.get(env_cfg.id)
 
 
 def baseline_names(env_cfg: EnvConfig) -> tuple[str, ...]:

@@ -30,13 +30,13 @@ from der_ros.train.evaluation import (
     policy_files,
     write_eval_row,
 )
+from sumo_bridge import NETWORK_ENV_IDS
 from sumo_bridge.observation import ObservationConfig, observation_size
 
 __all__ = ["GraphEvaluator", "observation_shape", "scenario_env_config"]
 
 log = logging.getLogger("der.graph")
 
-_ENV_IDS = {"ring": "der_ros/LaneChangeRing-v0", "urban": "der_ros/LaneChangeUrban-v0"}
 #: episodes per seeded reset (urban keeps its traffic running; a seeded reset warms up 150 s)
 _EPISODES_PER_SEED = {"ring": 1, "urban": 10}
 
@@ -61,7 +61,7 @@ def scenario_env_config(bridge_params: dict[str, Any]) -> EnvConfig:
     network = str(scenario.get("network", "ring"))
     scenario.pop("network", None)
     scenario.pop("gui", None)  # evaluations run headless
-    return EnvConfig(id=_ENV_IDS[network], kwargs={"scenario": scenario})
+    return EnvConfig(id=NETWORK_ENV_IDS[network], kwargs={"scenario": scenario})
 
 
 def observation_shape(env_cfg: EnvConfig) -> tuple[int]:
