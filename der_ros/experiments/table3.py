@@ -49,6 +49,7 @@ from der_ros.experiments.baselines import (
     load_gap_params,
     run_baselines,
 )
+from der_ros.experiments.paired import PairedCounts, paired_counts
 from der_ros.experiments.plots import plot_eval_curves
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import average_score
@@ -198,11 +199,11 @@ def write_table3(
                     f"| {s['eval_time_limit']:.3f} | {s['eval_return']:.2f} | {s['train_total_reward']:.2f} "
                     f"| {int(s['train_episodes'])} |"
                 )
+        b_names = {b: (baseline_labels or {}).get(net, {}).get(b) or BASELINE_LABELS.get(b, b) for b in baselines.get(net, {})}
         for bname, res in baselines.get(net, {}).items():
             b = _baseline_scores(res)
             payload[net][bname] = b
-            label = (baseline_labels or {}).get(net, {}).get(bname) or BASELINE_LABELS.get(bname, bname)
-            lines.append(f"| *baseline:* {label} | {b['eval_success']:.3f} "
+            lines.append(f"| *baseline:* {b_names[bname]} | {b['eval_success']:.3f} "
                          f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} | — | — |")  # fmt: skip
         lines += ["", "Mean over seeds [95% CI] of the same evaluation (the IQM above is the headline):", "",
                   "| Method | Success | Caused collision | Return |", "|---|---|---|---|"]  # fmt: skip
@@ -211,6 +212,7 @@ def write_table3(
             lines.append(f"| {labels[name]} | {_cell(mean_interval(col['eval_success']))} "
                          f"| {_cell(mean_interval(col['eval_collision']))} | {_cell(mean_interval(col['eval_return']), 1)} |")  # fmt: skip
         lines += _significance(net, payload[net], labels)
+        lines += _paired(results[net], baselines.get(net, {}), labels, b_names)
         lines += ["", f"![{net}: evaluation and training curves](table3_{net}_curves.png)", ""]
     info = environment_info() | _versions()
     counts = {net: max((len(runs) for runs in by_m.values()), default=0) for net, by_m in results.items()}
@@ -249,6 +251,61 @@ def _significance(net: str, payload: dict[str, Any], labels: dict[str, str]) -> 
         sentences.append(significance_sentence(labels[x], labels[y], p_r, "greedy return", n))
     lines += ["", *[f"- {s}" for s in sentences]]
     return lines
+
+
+#: the baselines a learned agent is paired with episode by episode (the two that succeed without colliding)
+PAIRED_BASELINES = ("gap_acceptance", "sumo")
+
+
+def _range(values: Sequence[int]) -> str:
+    lo, hi = min(values), max(values)
+    return f"{lo}" if lo == hi else f"{lo}–{hi}"
+
+
+def _noun(values: Sequence[int], word: str) -> str:
+    return word if min(values) == max(values) == 1 else word + "s"
+
+
+def _paired(runs: dict[str, list[RunResult]], baselines: dict[str, EvalResult], labels: dict[str, str],
+            b_labels: dict[str, str]) -> list[str]:  # fmt: skip
+    """Learned runs against the gap rule and SUMO's model on identical traffic (:mod:`der_ros.experiments.paired`)."""
+    evals = {m: [ev for r in rs if (ev := final_evaluation(r.spec.run_dir)) is not None] for m, rs in runs.items()}
+    table: dict[str, dict[str, PairedCounts]] = {}
+    for b in PAIRED_BASELINES:
+        if b not in baselines:
+            continue
+        for m, evs in evals.items():
+            counts = paired_counts(evs, baselines[b]) if evs else None
+            if counts is not None:
+                table.setdefault(b, {})[m] = counts
+    if not table:
+        return []
+    per_run = max(c.pairs // c.runs for by_m in table.values() for c in by_m.values())
+    lines = ["", "Episode by episode against the gap rule and SUMO's model: each run's evaluation episodes paired with the",
+             f"baseline's on identical traffic (the episodes that start from a seeded reset, {per_run} per run); counts over",
+             "all runs of a method.", "",
+             "| Method | Baseline | Pairs | Only the method succeeds | Only the baseline succeeds | Caused collisions "
+             "(distinct episodes) | …of them, the baseline succeeds | Baseline's caused collisions |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    sentences = []
+    for b, by_m in table.items():
+        for m, c in by_m.items():
+            lines.append(f"| {labels[m]} | {b_labels.get(b, b)} | {c.pairs} | {c.only_method} | {c.only_baseline} "
+                         f"| {c.method_caused} ({c.method_caused_situations}) | {c.method_caused_baseline_succeeds} "
+                         f"| {c.baseline_caused} |")  # fmt: skip
+        cs = list(by_m.values())
+        caused = [c.method_caused for c in cs]
+        text = (f"Against {b_labels.get(b, b)}: each learned method succeeds in {_range([c.only_method for c in cs])} "
+                f"pairs where the baseline fails, the baseline in {_range([c.only_baseline for c in cs])} where the "
+                "method fails")  # fmt: skip
+        if sum(caused):
+            situations = [c.method_caused_situations for c in cs]
+            text += (f"; a method's caused collisions ({_range(caused)}) fall in "
+                     f"{_range(situations)} distinct traffic {_noun(situations, 'situation')}")  # fmt: skip
+            if all(c.method_caused_baseline_succeeds == c.method_caused for c in cs):
+                text += ", and the baseline gets through every one of them"
+        sentences.append(text + ".")
+    return lines + ["", *[f"- {s}" for s in sentences]]
 
 
 def run(args: argparse.Namespace) -> int:
