@@ -14,6 +14,10 @@ Protocol (paper section 5.1, and the evaluation protocol of the README):
 * **Aggregates over >= 10 training seeds** (rliable): IQM with stratified-bootstrap 95% CIs, the
   mean with its CI, and the probability of improvement of each DER lambda over DQN and over PER;
   "better" only when the CI of P(X > Y) excludes 0.5.
+* **Episode by episode** against the gap rule and SUMO's model: every run's evaluation episodes that
+  start from a seeded reset are paired with the baseline's on the same traffic
+  (:mod:`der_ros.experiments.paired`): who succeeds where the other fails, and in how many distinct
+  traffic situations the agent's caused collisions fall.
 * The paper's own "total reward" stays, labelled as what it is: the mean return over all
   *training* episodes of a run (exploration included).
 
