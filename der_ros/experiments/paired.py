@@ -35,7 +35,7 @@ class PairedCounts:
     method_caused: int  #: collisions the learned policy caused, over the pairs
     method_caused_situations: int  #: distinct evaluation episodes (seeds) among those collisions
     method_caused_baseline_succeeds: int  #: those of the caused collisions where the baseline succeeds
-    baseline_caused: int  #: collisions the baseline caused, over the same pairs (a run's pairs count once each)
+    baseline_caused: int  #: collisions the baseline caused, over the same pairs (counted again for every run)
 
 
 def _caused(outcome: str, caused: bool) -> bool:

@@ -257,7 +257,7 @@ def _significance(net: str, payload: dict[str, Any], labels: dict[str, str]) -> 
     return lines
 
 
-#: the baselines a learned agent is paired with episode by episode (the two that succeed without colliding)
+#: the baselines a learned agent is paired with episode by episode: the two a user holds it to
 PAIRED_BASELINES = ("gap_acceptance", "sumo")
 
 
