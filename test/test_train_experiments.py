@@ -129,11 +129,19 @@ def test_table3_tiny_end_to_end_writes_the_evaluation_columns(tmp_path: Path, ca
     argv += ["--jobs", "2", "--out", str(out), "--results", str(results)]
     argv += ["--set", "agent.learning_starts=60", "--set", "agent.hidden_sizes=[32]", "--set", "train.tensorboard=false"]
     argv += ["--set", "train.eval_interval=60", "--set", "train.eval_episodes=2", "--set", "train.final_eval_episodes=3"]
+    # --no-train before any run: refused, the unfinished runs named, nothing trained or written
+    assert cli.main([*argv, "--no-train"]) == 1
+    err = capsys.readouterr().err
+    assert "2 of 2 runs are not finished and --no-train was given" in err and str(out / "ring" / "dqn" / "seed1000") in err
+    assert not (out / "ring" / "dqn" / "seed1000" / "summary.json").exists() and not (results / "table3.md").exists()
     assert cli.main(argv) == 0
+    (results / "table3.md").unlink()
+    assert cli.main([*argv, "--no-train"]) == 0  # finished runs: re-tabled
     md = (results / "table3.md").read_text()
     for col in ("| Success | Caused collision | Time limit | Return |", "Total reward (training, paper's metric)",
                 "*baseline:* never change (keep)", "*baseline:* gap acceptance (tuned)",
-                "*baseline:* SUMO's own model", "P(X > Y) on success", "216.91"):
+                "*baseline:* SUMO's own model", "P(X > Y) on success", "216.91",
+                "Episode by episode against the gap rule and SUMO's model", "| DQN | gap acceptance (tuned) | 3 |"):
         assert col in md
     table = json.loads((results / "table3.json").read_text())["ring"]
     assert set(table) == {"dqn", "der0.9", "keep", "immediate", "random", "gap_acceptance", "sumo"}

@@ -275,6 +275,21 @@ class SuiteRunError(RuntimeError):
         super().__init__("\n".join(lines))
 
 
+class UnfinishedRunsError(RuntimeError):
+    """``--no-train``: some runs of a suite are not finished, and the suite was told not to train them."""
+
+    user_facing = True
+
+    def __init__(self, specs: Sequence[RunSpec], total: int) -> None:
+        self.specs = list(specs)
+        lines = [f"{len(self.specs)} of {total} runs are not finished and --no-train was given "
+                 "(drop it to train them, or point --out at the folder that holds the finished runs):"]  # fmt: skip
+        lines += [f"  {spec.run_dir}" for spec in self.specs[:10]]
+        if len(self.specs) > 10:
+            lines.append(f"  ... and {len(self.specs) - 10} more")
+        super().__init__("\n".join(lines))
+
+
 def load_result(spec: RunSpec, metric_names: Iterable[str] | None = None) -> RunResult:
     """Read a finished run's summary, episodes and (optionally only some) metrics."""
     run_dir = Path(spec.run_dir)
@@ -336,6 +351,8 @@ def add_suite_arguments(
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default=None, help="torch device of every run")
     parser.add_argument("--out", default=default_out, help=f"folder of the run directories (default {default_out})")
     parser.add_argument("--results", default="results", help="folder for the table (.md) and figures (.png)")
+    parser.add_argument("--no-train", dest="train", action="store_false",
+                        help="only re-table finished runs: stop, naming the unfinished ones, instead of training them")  # fmt: skip
     add_set_argument(parser, help="config override for every run; VALUE is YAML (repeatable)")
 
 

@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     specs = plan_runs(args.config, methods, seeds, args.out, overrides)
-    summaries = run_specs(specs, backend=backend_from_args(args))
+    summaries = run_specs(specs, backend=backend_from_args(args), train=args.train)
     if report_interrupted("table1", summaries):
         return 130
     results: dict[str, list[RunResult]] = {m.name: [] for m in methods}

@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     for game, env_id in games.items():
         specs += plan_runs(args.config, methods, seeds, args.out, {**base, "env.id": env_id}, group=_game_key(game))
     jobs = args.jobs or default_atari_jobs(specs)  # local processes; Ray places runs by their resources
-    summaries = run_specs(specs, backend=backend_from_args(args, jobs=jobs))
+    summaries = run_specs(specs, backend=backend_from_args(args, jobs=jobs), train=args.train)
     if report_interrupted("table2", summaries):
         return 130
 

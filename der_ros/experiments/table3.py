@@ -323,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
     net_seeds = {net: seeds[: args.urban_seeds] if net == "urban" and args.urban_seeds else seeds for net in args.networks}
     for net in args.networks:
         specs += plan_runs(configs[net], methods, net_seeds[net], args.out, overrides, group=net)
-    summaries = run_specs(specs, backend=backend_from_args(args))
+    summaries = run_specs(specs, backend=backend_from_args(args), train=args.train)
     if report_interrupted("table3", summaries):
         return 130
     results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in methods} for net in args.networks}

@@ -24,7 +24,7 @@ from der_ros.experiments.backends.base import Backend, BackendError, EventSink, 
 from der_ros.experiments.backends.local import LocalBackend
 from der_ros.experiments.backends.progress import SuiteProgress
 from der_ros.experiments.backends.ray_cluster import RayBackend
-from der_ros.experiments.suite import RunSpec, SuiteRunError, _finished, _resolve
+from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError, _finished, _resolve
 
 __all__ = [
     "BACKENDS",
@@ -35,6 +35,7 @@ __all__ = [
     "RunEvent",
     "RunFailedError",
     "SuiteRunError",
+    "UnfinishedRunsError",
     "add_backend_arguments",
     "backend_from_args",
     "run_specs",
@@ -50,8 +51,11 @@ def run_specs(
     jobs: int | None = None,
     backend: Backend | None = None,
     on_event: EventSink | None = None,
+    train: bool = True,
 ) -> list[dict[str, Any]]:
     """Run the specs that are not finished on ``backend`` (default: ``jobs`` local processes).
+
+    ``train=False`` (``--no-train``): raise :class:`UnfinishedRunsError` if any spec is unfinished.
 
     Returns the summaries of the runs done now (finished, or interrupted by Ctrl-C); raises
     :class:`SuiteRunError` naming every run that failed for good, after the others are done.
@@ -66,6 +70,8 @@ def run_specs(
             todo.append(spec)
     if not todo:
         return []
+    if not train:
+        raise UnfinishedRunsError(todo, len(specs))
     backend = backend if backend is not None else LocalBackend(jobs)
     log.info("%d runs to do (%d finished), %s", len(todo), len(specs) - len(todo), backend.describe(len(todo)))
     progress = SuiteProgress(len(todo), len(specs) - len(todo))
