@@ -5,8 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
+from scipy.stats import binomtest
 
 from der_ros.experiments.paired import paired_counts
+from der_ros.experiments.stats import sign_test_p
 from der_ros.experiments.suite import PAPER_METHODS, RunResult, RunSpec
 from der_ros.experiments.table3 import write_table3
 from der_ros.train.evaluation import FINAL_EVAL_JSON, EpisodeResult, EvalResult
@@ -18,6 +21,21 @@ def _ev(outcomes: list[tuple[int | None, str, bool]]) -> EvalResult:
     eps = [EpisodeResult(seed=seed, stream=i, ret=0.0, length=1, outcome=o, caused=c)
            for i, (seed, o, c) in enumerate(outcomes)]  # fmt: skip
     return EvalResult(step=0, episodes=eps, seeds=[s for s, _, _ in outcomes if s is not None])
+
+
+def _table(tmp_path: Path, per_seed: dict[int, list[tuple[int | None, str, bool]]],
+           baselines: dict[str, EvalResult]) -> str:  # fmt: skip
+    method = PAPER_METHODS[0]
+    runs = []
+    for seed, outcomes in per_seed.items():
+        run_dir = tmp_path / f"seed{seed}"
+        run_dir.mkdir()
+        _ev(outcomes).save(run_dir / FINAL_EVAL_JSON)
+        spec = RunSpec(method=method, seed=seed, config_path="config/ring.yaml", run_dir=str(run_dir), group="ring")
+        runs.append(RunResult(spec=spec, summary={"steps": 10}, episode_steps=np.zeros(1), returns=np.zeros(1)))
+    md, _ = write_table3({"ring": {method.name: runs}}, {method.name: method.label}, {"ring": baselines},
+                         tmp_path / "t.md", "der table3", list(per_seed), {"ring": 10}, 0.0)  # fmt: skip
+    return md.read_text()
 
 
 def test_counts_pair_episodes_by_seed_and_skip_unseeded_follow_ups() -> None:
@@ -32,30 +50,52 @@ def test_counts_pair_episodes_by_seed_and_skip_unseeded_follow_ups() -> None:
     assert (c.only_method, c.only_baseline) == (2, 2)  # a: S+1 / S; b: S+3 / S
     assert (c.method_caused, c.method_caused_situations, c.method_caused_baseline_succeeds) == (2, 1, 2)
     assert c.baseline_caused == 2  # S+3, paired once in each run
+    # by situation: S (both runs collide where the baseline succeeds) is worse on success and on caused
+    # collisions; S+1 (a succeeds, the baseline times out) and S+3 (b succeeds, the baseline caused a
+    # collision) are better on success, and S+3 has fewer caused collisions; S+2 is a tie
+    assert c.situations == 4
+    assert (c.success_better, c.success_worse, c.caused_fewer, c.caused_more) == (2, 1, 1, 1)
+    assert c.success_p == c.caused_p == 1.0
     # a collision someone else caused is not the method's
     assert paired_counts([_ev([(S + 3, "collision", False)])], base).method_caused == 0  # type: ignore[union-attr]
     assert paired_counts([_ev([(S + 7, "success", False)])], base) is None
 
 
 def test_table3_pairs_learned_runs_with_the_gap_rule_and_sumo(tmp_path: Path) -> None:
-    method = PAPER_METHODS[0]
-    runs = []
-    for seed, outcomes in ((0, [(S, "collision", True), (S + 1, "success", False)]),
-                           (1, [(S, "success", False), (S + 1, "success", False)])):  # fmt: skip
-        run_dir = tmp_path / f"seed{seed}"
-        run_dir.mkdir()
-        _ev(outcomes).save(run_dir / FINAL_EVAL_JSON)
-        spec = RunSpec(method=method, seed=seed, config_path="config/ring.yaml", run_dir=str(run_dir), group="ring")
-        runs.append(RunResult(spec=spec, summary={"steps": 10}, episode_steps=np.zeros(1), returns=np.zeros(1)))
     gap = _ev([(S, "success", False), (S + 1, "time_limit", False)])
     sumo = _ev([(S, "success", False), (S + 1, "success", False)])
-    md, _ = write_table3({"ring": {method.name: runs}}, {method.name: method.label},
-                         {"ring": {"gap_acceptance": gap, "sumo": sumo}}, tmp_path / "t.md", "der table3", [0, 1],
-                         {"ring": 10}, 0.0)  # fmt: skip
-    text = md.read_text()
+    text = _table(tmp_path, {0: [(S, "collision", True), (S + 1, "success", False)],
+                             1: [(S, "success", False), (S + 1, "success", False)]},
+                  {"gap_acceptance": gap, "sumo": sumo})  # fmt: skip
     assert "(the episodes that start from a seeded reset, 2 per run)" in text
-    assert "| DQN | gap acceptance (tuned) | 4 | 2 | 1 | 1 (1) | 1 | 0 |" in text
-    assert "| DQN | SUMO's own model (standing request) | 4 | 0 | 1 | 1 (1) | 1 | 0 |" in text
+    assert "| DQN | gap acceptance (tuned) | 4 | 2 | 1 | 1 (1) | 1 | 0 | 1 / 1 (1.000) | 0 / 1 (1.000) |" in text
+    assert "| DQN | SUMO's own model (standing request) | 4 | 0 | 1 | 1 (1) | 1 | 0 | 0 / 1 (1.000) | 0 / 1 (1.000) |" in text
     assert ("- Against gap acceptance (tuned): each learned method succeeds in 2 pairs where the baseline fails, "
             "the baseline in 1 where the method fails; a method's caused collisions (1) fall in 1 distinct traffic "
             "situation, and the baseline gets through every one of them.") in text  # fmt: skip
+    # two situations cannot make a sign test significant, and the section says so
+    assert ("- Sign test by traffic situation (p < 0.05, uncorrected), against gap acceptance (tuned): no learned "
+            "method differs on success or on caused collisions. On success or caused collisions no difference could "
+            "show: it takes 6 situations all one way, and here at most 2 differ.") in text  # fmt: skip
+
+
+def test_sign_test_is_the_exact_two_sided_binomial_test() -> None:
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
+    assert sign_test_p(0, 6) == sign_test_p(6, 0) == pytest.approx(2 / 64)
+    assert sign_test_p(2, 13) == pytest.approx(2 * (1 + 15 + 105) / 2**15)
+    for wins in range(0, 12):
+        for losses in range(0, 12):
+            if wins + losses:
+                assert sign_test_p(wins, losses) == pytest.approx(binomtest(wins, wins + losses).pvalue)
+    with pytest.raises(ValueError, match="losses=-1"):
+        sign_test_p(2, -1)
+
+
+def test_table3_names_a_difference_by_situation_only_when_the_sign_test_finds_one(tmp_path: Path) -> None:
+    # the rule gets through six situations the agent fails in both runs: significant (p = 2/64)
+    fails = [(S + k, "time_limit", False) for k in range(6)]
+    rule = _ev([(S + k, "success", False) for k in range(6)])
+    text = _table(tmp_path, {0: fails, 1: fails}, {"gap_acceptance": rule})
+    assert "| DQN | gap acceptance (tuned) | 12 | 0 | 12 | 0 (0) | 0 | 0 | 0 / 6 (0.031) | 0 / 0 (1.000) |" in text
+    assert ("- Sign test by traffic situation (p < 0.05, uncorrected), against gap acceptance (tuned): DQN is worse on "
+            "success (0 against 6 situations, p = 0.031); no other difference.") in text  # fmt: skip

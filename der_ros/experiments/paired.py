@@ -12,6 +12,13 @@ so the episodes pair up one to one and those questions have counted answers.
 Only episodes that begin a seeded stream pair up: their traffic is identical for both policies. An
 unseeded follow-up episode (urban keeps its traffic running for ``eval_episodes_per_seed`` episodes)
 starts from whatever the policy's earlier episodes left behind, so it is left out.
+
+Counting pairs overstates the evidence: every training seed is evaluated on the same seeds, so one
+hard traffic situation can give ten pairs. The unit that is independent is the situation (the
+evaluation seed). For each one, the method's success rate over its runs is set against the
+baseline's outcome, and so is its caused-collision rate. The exact sign test on the situations where
+they differ (:func:`der_ros.experiments.stats.sign_test_p`) says whether the difference is more than
+chance.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from der_ros.experiments.stats import sign_test_p
 from der_ros.train.evaluation import EvalResult
 
 __all__ = ["PairedCounts", "paired_counts"]
@@ -36,6 +44,21 @@ class PairedCounts:
     method_caused_situations: int  #: distinct evaluation episodes (seeds) among those collisions
     method_caused_baseline_succeeds: int  #: those of the caused collisions where the baseline succeeds
     baseline_caused: int  #: collisions the baseline caused, over the same pairs (counted again for every run)
+    situations: int  #: distinct evaluation seeds among the pairs
+    success_better: int  #: situations where the method's success rate over its runs is above the baseline's
+    success_worse: int  #: situations where it is below
+    caused_fewer: int  #: situations where the method's caused-collision rate is below the baseline's
+    caused_more: int  #: situations where it is above
+
+    @property
+    def success_p(self) -> float:
+        """Sign test over situations on success: two-sided p of ``success_better`` against ``success_worse``."""
+        return sign_test_p(self.success_better, self.success_worse)
+
+    @property
+    def caused_p(self) -> float:
+        """Sign test over situations on caused collisions: ``caused_fewer`` against ``caused_more``."""
+        return sign_test_p(self.caused_fewer, self.caused_more)
 
 
 def _caused(outcome: str, caused: bool) -> bool:
@@ -48,8 +71,9 @@ def paired_counts(runs: Sequence[EvalResult], baseline: EvalResult) -> PairedCou
     None if no episode pairs up (e.g. the runs were evaluated on other seeds than the baseline).
     """
     base = {e.seed: e for e in baseline.episodes if e.seed is not None}
-    pairs = only_m = only_b = m_caused = m_caused_b_ok = b_caused = 0
-    situations: set[int] = set()
+    pairs = only_m = only_b = m_caused_b_ok = b_caused = 0
+    # per evaluation seed (traffic situation): [episodes, method successes, method caused collisions]
+    by_seed: dict[int, list[int]] = {}
     for run in runs:
         for e in run.episodes:
             if e.seed is None or e.seed not in base:
@@ -60,12 +84,25 @@ def paired_counts(runs: Sequence[EvalResult], baseline: EvalResult) -> PairedCou
             only_m += m_ok and not b_ok
             only_b += b_ok and not m_ok
             b_caused += _caused(b.outcome, b.caused)
-            if _caused(e.outcome, e.caused):
-                m_caused += 1
-                m_caused_b_ok += b_ok
-                situations.add(e.seed)
+            m_caused = _caused(e.outcome, e.caused)
+            m_caused_b_ok += m_caused and b_ok
+            tally = by_seed.setdefault(e.seed, [0, 0, 0])
+            tally[0] += 1
+            tally[1] += m_ok
+            tally[2] += m_caused
     if not pairs:
         return None
-    return PairedCounts(runs=len(runs), pairs=pairs, only_method=only_m, only_baseline=only_b, method_caused=m_caused,
-                        method_caused_situations=len(situations), method_caused_baseline_succeeds=m_caused_b_ok,
-                        baseline_caused=b_caused)  # fmt: skip
+    better = worse = fewer = more = 0
+    for seed, (n, ok, caused) in by_seed.items():
+        b = base[seed]
+        b_ok, b_caused_one = b.outcome == "success", _caused(b.outcome, b.caused)
+        # the method's rates are ok / n and caused / n; the baseline's are 0 or 1
+        better += ok > 0 and not b_ok
+        worse += ok < n and b_ok
+        fewer += caused < n and b_caused_one
+        more += caused > 0 and not b_caused_one
+    return PairedCounts(runs=len(runs), pairs=pairs, only_method=only_m, only_baseline=only_b,
+                        method_caused=sum(t[2] for t in by_seed.values()),
+                        method_caused_situations=sum(t[2] > 0 for t in by_seed.values()), method_caused_baseline_succeeds=m_caused_b_ok,
+                        baseline_caused=b_caused, situations=len(by_seed), success_better=better,
+                        success_worse=worse, caused_fewer=fewer, caused_more=more)  # fmt: skip

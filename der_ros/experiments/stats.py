@@ -5,6 +5,8 @@
 * Paper section 5 (Table 2): averages over 100 episode returns.
 * Across seeds we report the mean with a 95% percentile-bootstrap confidence interval of the mean
   (fixed seed, 10,000 resamples by default), so the interval is reproducible bit for bit.
+* Two policies on the same traffic situations: the exact two-sided sign test on the situations
+  where they differ (:func:`sign_test_p`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ __all__ = [
     "average_score",
     "mean_of_last",
     "curve_on_grid",
+    "sign_test_p",
 ]
 
 
@@ -115,6 +118,21 @@ class _quiet_nan_warnings:
 
     def __exit__(self, *exc: object) -> None:
         self._ctx.__exit__(*exc)
+
+
+def sign_test_p(wins: int, losses: int) -> float:
+    """Exact two-sided sign test: the chance of a split at least this uneven if either side were equally likely.
+
+    ``wins`` and ``losses`` count the paired cases (ties left out) where the first policy does better /
+    worse. ``P = min(1, 2 · P(Binomial(n, ½) ≤ min(wins, losses)))``, n = wins + losses; 1.0 when n = 0.
+    """
+    if wins < 0 or losses < 0:
+        raise ValueError(f"sign_test_p: wins and losses must be counts >= 0, got wins={wins}, losses={losses}")
+    n, k = wins + losses, min(wins, losses)
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2**n
+    return min(1.0, 2.0 * tail)
 
 
 def average_score(returns: Sequence[float] | np.ndarray) -> float:

@@ -16,8 +16,9 @@ Protocol (paper section 5.1, and the evaluation protocol of the README):
   "better" only when the CI of P(X > Y) excludes 0.5.
 * **Episode by episode** against the gap rule and SUMO's model: every run's evaluation episodes that
   start from a seeded reset are paired with the baseline's on the same traffic
-  (:mod:`der_ros.experiments.paired`): who succeeds where the other fails, and in how many distinct
-  traffic situations the agent's caused collisions fall.
+  (:mod:`der_ros.experiments.paired`): who succeeds where the other fails, in how many distinct
+  traffic situations the agent's caused collisions fall, and an exact sign test over situations
+  (each evaluation seed counted once) on success and on caused collisions.
 * The paper's own "total reward" stays, labelled as what it is: the mean return over all
   *training* episodes of a run (exploration included).
 
@@ -56,7 +57,7 @@ from der_ros.experiments.baselines import (
 from der_ros.experiments.paired import PairedCounts, paired_counts
 from der_ros.experiments.plots import plot_eval_curves
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
-from der_ros.experiments.stats import average_score
+from der_ros.experiments.stats import average_score, sign_test_p
 from der_ros.experiments.suite import (
     RunResult,
     RunSpec,
@@ -287,16 +288,20 @@ def _paired(runs: dict[str, list[RunResult]], baselines: dict[str, EvalResult], 
     per_run = max(c.pairs // c.runs for by_m in table.values() for c in by_m.values())
     lines = ["", "Episode by episode against the gap rule and SUMO's model: each run's evaluation episodes paired with the",
              f"baseline's on identical traffic (the episodes that start from a seeded reset, {per_run} per run); counts over",
-             "all runs of a method.", "",
+             "all runs of a method. One hard situation repeats in every run, so the last two columns count traffic",
+             "situations instead (each evaluation seed once, the method's runs pooled: better where its success rate",
+             "is above the baseline's, worse where below) with the exact two-sided sign test's p.", "",
              "| Method | Baseline | Pairs | Only the method succeeds | Only the baseline succeeds | Caused collisions "
-             "(distinct episodes) | …of them, the baseline succeeds | Baseline's caused collisions |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "(distinct episodes) | …of them, the baseline succeeds | Baseline's caused collisions "
+             "| Situations: method better / worse on success (p) | …on caused collisions (p) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     sentences = []
     for b, by_m in table.items():
         for m, c in by_m.items():
             lines.append(f"| {labels[m]} | {b_labels.get(b, b)} | {c.pairs} | {c.only_method} | {c.only_baseline} "
                          f"| {c.method_caused} ({c.method_caused_situations}) | {c.method_caused_baseline_succeeds} "
-                         f"| {c.baseline_caused} |")  # fmt: skip
+                         f"| {c.baseline_caused} | {c.success_better} / {c.success_worse} ({_p_cell(c.success_p)}) "
+                         f"| {c.caused_fewer} / {c.caused_more} ({_p_cell(c.caused_p)}) |")  # fmt: skip
         cs = list(by_m.values())
         caused = [c.method_caused for c in cs]
         text = (f"Against {b_labels.get(b, b)}: each learned method succeeds in {_range([c.only_method for c in cs])} "
@@ -309,7 +314,43 @@ def _paired(runs: dict[str, list[RunResult]], baselines: dict[str, EvalResult], 
             if all(c.method_caused_baseline_succeeds == c.method_caused for c in cs):
                 text += ", and the baseline gets through every one of them"
         sentences.append(text + ".")
+        sentences.append(_situation_sentence(b_labels.get(b, b), by_m, labels))
     return lines + ["", *[f"- {s}" for s in sentences]]
+
+
+#: the level below which a sign-test p counts as a difference in the generated sentences (uncorrected)
+SIGN_TEST_ALPHA = 0.05
+
+
+def _p_text(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}"
+
+
+def _p_cell(p: float) -> str:
+    return "< 0.001" if p < 0.001 else f"{p:.3f}"
+
+
+def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dict[str, str]) -> str:
+    """What the sign tests over traffic situations say, method by method, against one baseline."""
+    found = []
+    for m, c in by_m.items():
+        for what, p, good, bad in (("success", c.success_p, c.success_better, c.success_worse),
+                                   ("caused collisions", c.caused_p, c.caused_fewer, c.caused_more)):  # fmt: skip
+            if p < SIGN_TEST_ALPHA:
+                side = "better" if good > bad else "worse"
+                found.append(f"{labels[m]} is {side} on {what} ({good} against {bad} situations, {_p_text(p)})")
+    text = f"Sign test by traffic situation (p < {SIGN_TEST_ALPHA}, uncorrected), against {b_label}: "
+    text += "; ".join(found) + "; no other difference" if found else "no learned method differs on success or on caused collisions"
+    # the smallest split that can reach the level: n situations all one way, 2 · 2^-n < alpha
+    need = next(n for n in range(1, 64) if sign_test_p(n, 0) < SIGN_TEST_ALPHA)
+    most = {"success": max(c.success_better + c.success_worse for c in by_m.values()),
+            "caused collisions": max(c.caused_fewer + c.caused_more for c in by_m.values())}  # fmt: skip
+    short = [what for what, n in most.items() if n < need]
+    if short:
+        n = max(most[what] for what in short)
+        text += (f". On {' or '.join(short)} no difference could show: it takes {need} situations all one way, and "
+                 f"here at most {n} {'differs' if n == 1 else 'differ'}")  # fmt: skip
+    return text + "."
 
 
 def run(args: argparse.Namespace) -> int:
