@@ -103,6 +103,7 @@ def paired_counts(runs: Sequence[EvalResult], baseline: EvalResult) -> PairedCou
         more += caused > 0 and not b_caused_one
     return PairedCounts(runs=len(runs), pairs=pairs, only_method=only_m, only_baseline=only_b,
                         method_caused=sum(t[2] for t in by_seed.values()),
-                        method_caused_situations=sum(t[2] > 0 for t in by_seed.values()), method_caused_baseline_succeeds=m_caused_b_ok,
-                        baseline_caused=b_caused, situations=len(by_seed), success_better=better,
-                        success_worse=worse, caused_fewer=fewer, caused_more=more)  # fmt: skip
+                        method_caused_situations=sum(t[2] > 0 for t in by_seed.values()),
+                        method_caused_baseline_succeeds=m_caused_b_ok, baseline_caused=b_caused,
+                        situations=len(by_seed), success_better=better, success_worse=worse, caused_fewer=fewer,
+                        caused_more=more)  # fmt: skip

@@ -340,7 +340,10 @@ def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dic
                 side = "better" if good > bad else "worse"
                 found.append(f"{labels[m]} is {side} on {what} ({good} against {bad} situations, {_p_text(p)})")
     text = f"Sign test by traffic situation (p < {SIGN_TEST_ALPHA}, uncorrected), against {b_label}: "
-    text += "; ".join(found) + "; no other difference" if found else "no learned method differs on success or on caused collisions"
+    if found:
+        text += "; ".join(found) + "; no other difference"
+    else:
+        text += "no learned method differs on success or on caused collisions"
     # the smallest split that can reach the level: n situations all one way, 2 · 2^-n < alpha
     need = next(n for n in range(1, 64) if sign_test_p(n, 0) < SIGN_TEST_ALPHA)
     most = {"success": max(c.success_better + c.success_worse for c in by_m.values()),
