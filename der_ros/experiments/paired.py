@@ -15,10 +15,13 @@ starts from whatever the policy's earlier episodes left behind, so it is left ou
 
 Counting pairs overstates the evidence: every training seed is evaluated on the same seeds, so one
 hard traffic situation can give ten pairs. The unit that is independent is the situation (the
-evaluation seed). For each one, the method's success rate over its runs is set against the
-baseline's outcome, and so is its caused-collision rate. The exact sign test on the situations where
-they differ (:func:`der_ros.experiments.stats.sign_test_p`) says whether the difference is more than
-chance.
+evaluation seed). For each one, the method's success rate over its runs minus the baseline's
+success (0 or 1) is a paired difference, and so is the baseline's caused-collision rate minus the
+method's (positive where the method causes fewer). A paired permutation test of their mean
+(:func:`der_ros.experiments.stats.paired_permutation_p`) says whether the difference in the rates
+is more than chance. It weighs each situation by how much the two differ there: a situation the
+rule never gets through and the agent always does counts for more than one where one of ten runs
+fails.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from der_ros.experiments.stats import sign_test_p
+from der_ros.experiments.stats import paired_permutation_p
 from der_ros.train.evaluation import EvalResult
 
 __all__ = ["PairedCounts", "paired_counts"]
@@ -44,21 +47,43 @@ class PairedCounts:
     method_caused_situations: int  #: distinct evaluation episodes (seeds) among those collisions
     method_caused_baseline_succeeds: int  #: those of the caused collisions where the baseline succeeds
     baseline_caused: int  #: collisions the baseline caused, over the same pairs (counted again for every run)
-    situations: int  #: distinct evaluation seeds among the pairs
-    success_better: int  #: situations where the method's success rate over its runs is above the baseline's
-    success_worse: int  #: situations where it is below
-    caused_fewer: int  #: situations where the method's caused-collision rate is below the baseline's
-    caused_more: int  #: situations where it is above
+    success_diffs: tuple[float, ...]  #: per situation: the method's success rate over its runs minus the baseline's
+    caused_diffs: tuple[float, ...]  #: per situation: the baseline's caused-collision rate minus the method's
+
+    @property
+    def situations(self) -> int:
+        """Distinct evaluation seeds among the pairs."""
+        return len(self.success_diffs)
+
+    @property
+    def success_better(self) -> int:
+        """Situations where the method's success rate is above the baseline's."""
+        return sum(d > 0 for d in self.success_diffs)
+
+    @property
+    def success_worse(self) -> int:
+        """Situations where it is below."""
+        return sum(d < 0 for d in self.success_diffs)
+
+    @property
+    def caused_fewer(self) -> int:
+        """Situations where the method's caused-collision rate is below the baseline's."""
+        return sum(d > 0 for d in self.caused_diffs)
+
+    @property
+    def caused_more(self) -> int:
+        """Situations where it is above."""
+        return sum(d < 0 for d in self.caused_diffs)
 
     @property
     def success_p(self) -> float:
-        """Sign test over situations on success: two-sided p of ``success_better`` against ``success_worse``."""
-        return sign_test_p(self.success_better, self.success_worse)
+        """Permutation test over situations that the mean success difference is zero (two-sided)."""
+        return paired_permutation_p(self.success_diffs)
 
     @property
     def caused_p(self) -> float:
-        """Sign test over situations on caused collisions: ``caused_fewer`` against ``caused_more``."""
-        return sign_test_p(self.caused_fewer, self.caused_more)
+        """Permutation test over situations that the mean caused-collision difference is zero."""
+        return paired_permutation_p(self.caused_diffs)
 
 
 def _caused(outcome: str, caused: bool) -> bool:
@@ -92,18 +117,14 @@ def paired_counts(runs: Sequence[EvalResult], baseline: EvalResult) -> PairedCou
             tally[2] += m_caused
     if not pairs:
         return None
-    better = worse = fewer = more = 0
-    for seed, (n, ok, caused) in by_seed.items():
+    success_diffs, caused_diffs = [], []
+    for seed in sorted(by_seed):
+        n, ok, caused = by_seed[seed]
         b = base[seed]
-        b_ok, b_caused_one = b.outcome == "success", _caused(b.outcome, b.caused)
-        # the method's rates are ok / n and caused / n; the baseline's are 0 or 1
-        better += ok > 0 and not b_ok
-        worse += ok < n and b_ok
-        fewer += caused < n and b_caused_one
-        more += caused > 0 and not b_caused_one
+        success_diffs.append(ok / n - (b.outcome == "success"))
+        caused_diffs.append(_caused(b.outcome, b.caused) - caused / n)
     return PairedCounts(runs=len(runs), pairs=pairs, only_method=only_m, only_baseline=only_b,
                         method_caused=sum(t[2] for t in by_seed.values()),
                         method_caused_situations=sum(t[2] > 0 for t in by_seed.values()),
                         method_caused_baseline_succeeds=m_caused_b_ok, baseline_caused=b_caused,
-                        situations=len(by_seed), success_better=better, success_worse=worse, caused_fewer=fewer,
-                        caused_more=more)  # fmt: skip
+                        success_diffs=tuple(success_diffs), caused_diffs=tuple(caused_diffs))  # fmt: skip

@@ -5,8 +5,8 @@
 * Paper section 5 (Table 2): averages over 100 episode returns.
 * Across seeds we report the mean with a 95% percentile-bootstrap confidence interval of the mean
   (fixed seed, 10,000 resamples by default), so the interval is reproducible bit for bit.
-* Two policies on the same traffic situations: the exact two-sided sign test on the situations
-  where they differ (:func:`sign_test_p`).
+* Two policies on the same traffic situations: a paired permutation test (sign flips) of the mean
+  difference over situations (:func:`paired_permutation_p`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ __all__ = [
     "average_score",
     "mean_of_last",
     "curve_on_grid",
-    "sign_test_p",
+    "paired_permutation_p",
 ]
 
 
@@ -120,19 +120,43 @@ class _quiet_nan_warnings:
         self._ctx.__exit__(*exc)
 
 
-def sign_test_p(wins: int, losses: int) -> float:
-    """Exact two-sided sign test: the chance of a split at least this uneven if either side were equally likely.
+def paired_permutation_p(diffs: Sequence[float] | np.ndarray, resamples: int = 100_000, seed: int = 0) -> float:
+    """Two-sided paired permutation test (sign flips) that the mean of ``diffs`` is zero.
 
-    ``wins`` and ``losses`` count the paired cases (ties left out) where the first policy does better /
-    worse. ``P = min(1, 2 · P(Binomial(n, ½) ≤ min(wins, losses)))``, n = wins + losses; 1.0 when n = 0.
+    ``diffs`` are paired differences, e.g. one per traffic situation: a method's success rate there
+    minus a baseline's. Under the null each difference is as likely to have the other sign, so p is
+    the share of sign assignments whose sum is at least as far from zero as the observed one. Zeros
+    carry no information and are dropped. Up to 16 non-zero differences every assignment is counted
+    (exact; ``n`` all of one sign give p = 2 / 2^n); above that ``resamples`` random ones, with the
+    generator seeded so p is reproducible, and p = (hits + 1) / (resamples + 1). 1.0 without any
+    non-zero difference.
     """
-    if wins < 0 or losses < 0:
-        raise ValueError(f"sign_test_p: wins and losses must be counts >= 0, got wins={wins}, losses={losses}")
-    n, k = wins + losses, min(wins, losses)
+    if resamples < 1:
+        raise ValueError(f"paired_permutation_p: resamples = {resamples!r}, expected >= 1")
+    d = np.asarray(diffs, dtype=np.float64).ravel()
+    if not np.all(np.isfinite(d)):
+        raise ValueError("paired_permutation_p: diffs must be finite numbers")
+    d = d[d != 0.0]
+    n = d.size
     if n == 0:
         return 1.0
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2**n
-    return min(1.0, 2.0 * tail)
+    observed = abs(float(d.sum()))
+    tol = 1e-9 * float(np.abs(d).sum())  # sums equal to the observed one up to rounding count as hits
+    if n <= _EXACT_FLIPS:
+        signs = ((np.arange(2**n)[:, None] >> np.arange(n)) & 1) * 2 - 1
+        return float(np.mean(np.abs(signs @ d) >= observed - tol))
+    rng = np.random.default_rng(seed)
+    hits = done = 0
+    while done < resamples:
+        m = min(10_000, resamples - done)
+        signs = rng.integers(0, 2, size=(m, n)) * 2 - 1
+        hits += int(np.count_nonzero(np.abs(signs @ d) >= observed - tol))
+        done += m
+    return (hits + 1) / (resamples + 1)
+
+
+#: up to this many non-zero differences :func:`paired_permutation_p` counts every sign assignment
+_EXACT_FLIPS = 16
 
 
 def average_score(returns: Sequence[float] | np.ndarray) -> float:

@@ -17,8 +17,9 @@ Protocol (paper section 5.1, and the evaluation protocol of the README):
 * **Episode by episode** against the gap rule and SUMO's model: every run's evaluation episodes that
   start from a seeded reset are paired with the baseline's on the same traffic
   (:mod:`der_ros.experiments.paired`): who succeeds where the other fails, in how many distinct
-  traffic situations the agent's caused collisions fall, and an exact sign test over situations
-  (each evaluation seed counted once) on success and on caused collisions.
+  traffic situations the agent's caused collisions fall, and a paired permutation test over
+  situations (each evaluation seed counted once) of the difference in success and in caused
+  collisions.
 * The paper's own "total reward" stays, labelled as what it is: the mean return over all
   *training* episodes of a run (exploration included).
 
@@ -57,7 +58,7 @@ from der_ros.experiments.baselines import (
 from der_ros.experiments.paired import PairedCounts, paired_counts
 from der_ros.experiments.plots import plot_eval_curves
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
-from der_ros.experiments.stats import average_score, sign_test_p
+from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
     RunResult,
     RunSpec,
@@ -290,7 +291,8 @@ def _paired(runs: dict[str, list[RunResult]], baselines: dict[str, EvalResult], 
              f"baseline's on identical traffic (the episodes that start from a seeded reset, {per_run} per run); counts over",
              "all runs of a method. One hard situation repeats in every run, so the last two columns count traffic",
              "situations instead (each evaluation seed once, the method's runs pooled: better where its success rate",
-             "is above the baseline's, worse where below) with the exact two-sided sign test's p.", "",
+             "is above the baseline's, worse where below), with p of a paired permutation test over situations that",
+             "the method's rate and the baseline's are the same.", "",
              "| Method | Baseline | Pairs | Only the method succeeds | Only the baseline succeeds | Caused collisions "
              "(distinct episodes) | …of them, the baseline succeeds | Baseline's caused collisions "
              "| Situations: method better / worse on success (p) | …on caused collisions (p) |",
@@ -318,8 +320,8 @@ def _paired(runs: dict[str, list[RunResult]], baselines: dict[str, EvalResult], 
     return lines + ["", *[f"- {s}" for s in sentences]]
 
 
-#: the level below which a sign-test p counts as a difference in the generated sentences (uncorrected)
-SIGN_TEST_ALPHA = 0.05
+#: the level below which a permutation-test p counts as a difference in the generated sentences (uncorrected)
+PAIRED_ALPHA = 0.05
 
 
 def _p_text(p: float) -> str:
@@ -331,21 +333,21 @@ def _p_cell(p: float) -> str:
 
 
 def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dict[str, str]) -> str:
-    """What the sign tests over traffic situations say, method by method, against one baseline."""
+    """What the permutation tests over traffic situations say, method by method, against one baseline."""
     found = []
     for m, c in by_m.items():
         for what, p, good, bad in (("success", c.success_p, c.success_better, c.success_worse),
                                    ("caused collisions", c.caused_p, c.caused_fewer, c.caused_more)):  # fmt: skip
-            if p < SIGN_TEST_ALPHA:
+            if p < PAIRED_ALPHA:
                 side = "better" if good > bad else "worse"
                 found.append(f"{labels[m]} is {side} on {what} ({good} against {bad} situations, {_p_text(p)})")
-    text = f"Sign test by traffic situation (p < {SIGN_TEST_ALPHA}, uncorrected), against {b_label}: "
+    text = f"Paired by traffic situation (permutation test, p < {PAIRED_ALPHA}, uncorrected), against {b_label}: "
     if found:
         text += "; ".join(found) + "; no other difference"
     else:
         text += "no learned method differs on success or on caused collisions"
-    # the smallest split that can reach the level: n situations all one way, 2 · 2^-n < alpha
-    need = next(n for n in range(1, 64) if sign_test_p(n, 0) < SIGN_TEST_ALPHA)
+    # the fewest situations that can reach the level: n all one way, p = 2 · 2^-n
+    need = next(n for n in range(1, 17) if paired_permutation_p([1.0] * n) < PAIRED_ALPHA)
     most = {"success": max(c.success_better + c.success_worse for c in by_m.values()),
             "caused collisions": max(c.caused_fewer + c.caused_more for c in by_m.values())}  # fmt: skip
     short = [what for what, n in most.items() if n < need]
