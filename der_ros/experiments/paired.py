@@ -37,7 +37,7 @@ __all__ = ["PairedCounts", "paired_counts"]
 
 @dataclass(frozen=True)
 class PairedCounts:
-    """Counts over every (run, episode) pair of learned runs against one baseline."""
+    """Counts over every (run, episode) pair of learned runs against one baseline, and the differences per situation."""
 
     runs: int  #: learned runs compared
     pairs: int  #: episode pairs on identical traffic, over all runs
