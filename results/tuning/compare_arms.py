@@ -11,27 +11,27 @@ collision rate over its runs, and tests the mean of the differences (arm B minus
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from der_ros.experiments.stats import paired_permutation_p
+from der_ros.train.evaluation import EvalResult
 
 
-def per_situation(runs: list[Path]) -> tuple[list[int], np.ndarray, np.ndarray]:
+def per_situation(runs: list[Path]) -> tuple[list[int | None], np.ndarray, np.ndarray]:
     """Seeds, and per seed the success and caused-collision rates over ``runs``."""
-    seeds: list[int] | None = None
+    seeds: list[int | None] | None = None
     succ, caused = [], []
     for run in runs:
-        eps = json.loads((run / "evaluation.json").read_text())["episodes"]
-        s = [int(e["seed"]) for e in eps]
+        eps = EvalResult.load(run / "evaluation.json").episodes
+        s = [e.seed for e in eps]
         if seeds is None:
             seeds = s
         elif s != seeds:
             raise SystemExit(f"{run}: evaluated on other seeds than {runs[0]}")
-        succ.append([e["outcome"] == "success" for e in eps])
-        caused.append([e["outcome"] == "collision" and bool(e["caused"]) for e in eps])
+        succ.append([e.outcome == "success" for e in eps])
+        caused.append([e.outcome == "collision" and e.caused for e in eps])
     assert seeds is not None
     return seeds, np.mean(succ, axis=0), np.mean(caused, axis=0)
 
