@@ -236,9 +236,9 @@ def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path
     scenario["observation"].pop("near_gap_horizon")
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
     old_rule = "env.kwargs.scenario.commit_on_success=false"
-    for explicit in ("env.kwargs.scenario.observation.near_gap_horizon=0.0",
-                     "env.kwargs.scenario.observation.required_decel_scale=0"):  # fmt: skip
-        _check_same_settings(tmp_path, load_experiment_config(ring, [explicit, old_rule]))
+    old_look = "env.kwargs.scenario.observation.near_gap_horizon=0.0"  # the shipped ring uses 1.0
+    for extra in ([], ["env.kwargs.scenario.observation.required_decel_scale=0"]):
+        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, old_look, *extra]))
     with pytest.raises(ConfigError, match=r"scenario\.commit_on_success = False there, True now"):
         _check_same_settings(tmp_path, load_experiment_config(ring))
     look_ahead = "env.kwargs.scenario.observation.near_gap_horizon=0.5"
