@@ -1,0 +1,66 @@
+"""How often does a greedy ring policy change lanes into each kind of state, and with what outcome?
+
+Counterpart of results/tuning/collision_states.py: it replays the first ``EPISODES`` report
+evaluation situations (``EVAL_SEED_BASE + k``) with a run's greedy policy and classifies the state
+of the last lane change each episode commanded, with the shield test of
+results/tuning/shield_eval.py: a target-side gap < 0 now ("overlap"), < 0 within 1 s at constant
+speeds ("closes"), or neither. It prints the counts per (outcome, kind): whether those kinds are
+collisions waiting to happen or mostly safe (the other vehicle brakes, or the along-road gap on
+the curved ring is not a lateral overlap).
+
+    python results/tuning/change_kinds.py RUN_DIR EPISODES
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import sumo_bridge  # noqa: F401 - registers the lane-change environments
+from der_ros.agent.dqn import DQNAgent
+from der_ros.train.config import load_experiment_config
+from der_ros.train.envs import make_env_from_config
+from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from shield_eval import COL, blocked  # noqa: E402
+
+
+def main() -> None:
+    if len(sys.argv) != 3:
+        raise SystemExit(__doc__)
+    run, n = Path(sys.argv[1]), int(sys.argv[2])
+    cfg = load_experiment_config(run / "config.yaml")
+    agent = DQNAgent.load(run / "checkpoint.pt")
+    agent.q_net.eval()
+    policy = GreedyQPolicy(agent.q_net, np.float32)
+    env = make_env_from_config(cfg.env, EVAL_SEED_BASE)
+    counts: collections.Counter[tuple[str, str]] = collections.Counter()
+    try:
+        for k in range(n):
+            obs, info = env.reset(seed=EVAL_SEED_BASE + k)
+            state = None
+            while True:
+                a = policy(np.asarray([obs]), [info])[0]
+                ego = info["points"][0]
+                if a != 0 and ego[COL["lane"]] != ego[COL["target_lane"]]:
+                    state = (info["points"].copy(), a)
+                obs, _, term, trunc, info = env.step(a)
+                if term or trunc or info.get("event") in ("success", "collision"):
+                    break
+            if state is not None:
+                points, a = state
+                kind = "overlap" if blocked(points, a, 0.0) else "closes" if blocked(points, a, 1.0) else "neither"
+                counts[(str(info.get("event", "time_limit")), kind)] += 1
+    finally:
+        env.close()
+    print(f"{run}: {n} episodes; (outcome, kind of the last change's state): count")
+    for key, c in sorted(counts.items()):
+        print(f"  {key}: {c}")
+
+
+if __name__ == "__main__":
+    main()
