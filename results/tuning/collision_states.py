@@ -6,10 +6,10 @@ results/run_files/table3_ring_h1_eval3000), replays the episode with the run's g
 prints the state at the decision where it commanded the lane change that collided: the gaps (m)
 and relative speeds (m/s) of the target-side leader and follower, and whether the tuned
 gap-acceptance rule (config/baselines.yaml) would have accepted that same gap, and which of three
-kinds the state is: a target-side vehicle *overlaps* the ego now (gap < 0), one *closes* to an
-overlap within 1 s at constant speeds (what the 1 s near-gap channel reads as < 0), or *neither*.
-Diagnosis only;
-nothing is tuned on it.
+kinds the state is (results/tuning/shield_eval.py's test): a target-side bumper-to-bumper gap
+along the road is below 0 now ("overlap"), or one closes to below 0 within 1 s at constant speeds
+("closes", what the 1 s near-gap channel reads as < 0), or "neither". Such states are not certain
+collisions (results/tuning/change_kinds.py). Diagnosis only; nothing is tuned on it.
 
     python results/tuning/collision_states.py RUN_DIR [RUN_DIR ...] --evaluations DIR
 """
@@ -17,6 +17,7 @@ nothing is tuned on it.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +28,11 @@ from der_ros.experiments.baselines import load_gap_params
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EvalResult, GreedyQPolicy
-from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES
+from sumo_bridge.observation import SLOT_NAMES
 from sumo_bridge.policies import gap_acceptance_policy
 
-COL = {name: i for i, name in enumerate(POINT_FIELDS)}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from shield_eval import COL, blocked  # noqa: E402  (the shield's test of a target-side gap below 0)
 
 
 def main() -> None:
@@ -74,14 +76,7 @@ def main() -> None:
                 rule = gap_acceptance_policy(points, gap.lead_gap, gap.follow_gap, gap.time_headway) != 0
                 fmt = lambda p: (f"gap {p[COL['gap']]:6.2f} rel {p[COL['rel_speed']]:+5.2f}"  # noqa: E731
                                  if p[COL['present']] > 0.5 else "absent          ")  # fmt: skip
-                def near(p: np.ndarray, sign: float) -> tuple[float, float]:  # gap now, gap in 1 s
-                    if p[COL["present"]] < 0.5:
-                        return np.inf, np.inf
-                    return p[COL["gap"]], p[COL["gap"]] + sign * p[COL["rel_speed"]]
-
-                now = min(near(lead, 1.0)[0], near(foll, -1.0)[0])
-                soon = min(min(near(lead, 1.0)), min(near(foll, -1.0)))
-                kind = "overlap" if now < 0 else "closes" if soon < 0 else "neither"
+                kind = "overlap" if blocked(points, a, 0.0) else "closes" if blocked(points, a, 1.0) else "neither"
                 kinds[kind] = kinds.get(kind, 0) + 1
                 rows.append(rule)
                 print(f"{run.parent.name}/{run.name} seed {seed}: leader {fmt(lead)} | follower {fmt(foll)} | "
