@@ -6,6 +6,9 @@ as ``--set train.final_eval_episodes=N`` gives a sweep's runs. Prints success / 
 time-limit counts per baseline.
 
     python results/tuning/baselines_tuning_seeds.py config/ring.yaml --baselines gap_acceptance sumo --episodes 1800
+
+``--gap LEAD FOLLOW HEADWAY`` (repeatable) runs the gap-acceptance rule with other thresholds
+instead of the tuned ones (config/baselines.yaml), to see where its caused collisions begin.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import argparse
 import collections
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
-from der_ros.experiments.baselines import _network, evaluate_baseline, load_gap_params
+from der_ros.experiments.baselines import GapAcceptanceParams, _network, evaluate_baseline, load_gap_params
 from der_ros.train.config import load_experiment_config
 from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
 
@@ -24,13 +27,25 @@ def main() -> None:
     ap.add_argument("config", help="training YAML whose env the baselines run on")
     ap.add_argument("--baselines", nargs="+", default=["gap_acceptance"])
     ap.add_argument("--episodes", type=int, default=1800)
+    ap.add_argument(
+        "--gap",
+        nargs=3,
+        type=float,
+        action="append",
+        metavar=("LEAD", "FOLLOW", "HEADWAY"),
+        help="gap-acceptance thresholds to run instead of the tuned ones (repeatable)",
+    )
     args = ap.parse_args()
     cfg = load_experiment_config(args.config)
     net = _network(cfg.env)
     if net is None:
         raise SystemExit(f"{args.config}: env.id = {cfg.env.id!r} is not a SUMO lane-change env")
-    for name in args.baselines:
-        gap = load_gap_params(net) if name == "gap_acceptance" else None
+    runs = [(name, load_gap_params(net) if name == "gap_acceptance" else None) for name in args.baselines]
+    if args.gap:
+        if any(not v >= 0 for g in args.gap for v in g):
+            raise SystemExit(f"--gap {args.gap}: expected thresholds >= 0")
+        runs = [("gap_acceptance", GapAcceptanceParams(*g)) for g in args.gap]
+    for name, gap in runs:
         res = evaluate_baseline(
             cfg.env, name, args.episodes, cfg.train.eval_episodes_per_seed, TUNING_EVAL_SEED_BASE, gap
         )
@@ -38,7 +53,7 @@ def main() -> None:
                                      for e in res.episodes)  # fmt: skip
         caused = [e.seed for e in res.episodes if e.outcome == "collision" and e.caused]
         print(
-            f"{name}: {res.n} episodes, {dict(counts)}, mean return {res.mean_return:.2f}, "
+            f"{name}{'' if gap is None else ' ' + str(gap)}: {res.n} episodes, {dict(counts)}, mean return {res.mean_return:.2f}, "
             f"caused-collision seeds {caused}, {res.wall_s:.0f} s",
             flush=True,
         )
