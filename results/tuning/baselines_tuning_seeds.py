@@ -9,17 +9,21 @@ time-limit counts per baseline.
 
 ``--gap LEAD FOLLOW HEADWAY`` (repeatable) runs the gap-acceptance rule with other thresholds
 instead of the tuned ones (config/baselines.yaml), to see where its caused collisions begin.
+``--seed-set report`` runs on the report evaluation seeds (``EVAL_SEED_BASE + k``) instead, for a
+setting already chosen on the tuning seeds; ``--out DIR`` also saves each evaluation as
+``DIR/<name>[_<lead>_<follow>_<headway>]/evaluation.json`` for results/tuning/compare_arms.py.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+from pathlib import Path
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.experiments.baselines import GapAcceptanceParams, _network, evaluate_baseline, load_gap_params
 from der_ros.train.config import load_experiment_config
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
+from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
 
 
 def main() -> None:
@@ -35,7 +39,11 @@ def main() -> None:
         metavar=("LEAD", "FOLLOW", "HEADWAY"),
         help="gap-acceptance thresholds to run instead of the tuned ones (repeatable)",
     )
+    ap.add_argument("--seed-set", choices=("tuning", "report"), default="tuning",
+                    help="tuning: TUNING_EVAL_SEED_BASE + k (default); report: EVAL_SEED_BASE + k")  # fmt: skip
+    ap.add_argument("--out", type=Path, help="save DIR/<name>/evaluation.json per evaluation")
     args = ap.parse_args()
+    seed_base = TUNING_EVAL_SEED_BASE if args.seed_set == "tuning" else EVAL_SEED_BASE
     cfg = load_experiment_config(args.config)
     net = _network(cfg.env)
     if net is None:
@@ -46,9 +54,15 @@ def main() -> None:
             raise SystemExit(f"--gap {args.gap}: expected thresholds >= 0")
         runs = [("gap_acceptance", GapAcceptanceParams(*g)) for g in args.gap]
     for name, gap in runs:
-        res = evaluate_baseline(
-            cfg.env, name, args.episodes, cfg.train.eval_episodes_per_seed, TUNING_EVAL_SEED_BASE, gap
-        )
+        res = evaluate_baseline(cfg.env, name, args.episodes, cfg.train.eval_episodes_per_seed, seed_base, gap)
+        if args.out is not None:
+            label = (
+                name
+                if gap is None or not args.gap
+                else f"{name}_{gap.lead_gap:g}_{gap.follow_gap:g}_{gap.time_headway:g}"
+            )
+            (args.out / label).mkdir(parents=True, exist_ok=True)
+            res.save(args.out / label / "evaluation.json")
         counts = collections.Counter("caused collision" if e.outcome == "collision" and e.caused else e.outcome
                                      for e in res.episodes)  # fmt: skip
         caused = [e.seed for e in res.episodes if e.outcome == "collision" and e.caused]
