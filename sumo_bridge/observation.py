@@ -71,10 +71,11 @@ greedy DQN's caused collisions on the ring from 3-13% to 1-1.3% (README, "Design
 With ``near_gap_horizon = h > 0`` the channel reads the gap the vehicles will have ``h`` seconds
 later when that is smaller than the gap now: with h = 0.5 s (one decision interval on the shipped
 configs) a leader 0.8 m ahead but 3.7 m/s slower reads as an overlap, as it is one for a lane
-change. The default, 0, reads the gap now (urban.yaml uses it). config/ring.yaml uses h = 1 s, the
-gap rule's headway: on 6,000 tuning situations per run it cut the ring DQN's caused collisions
-from 95 to 55 in 60,000 episodes and raised its success (results/tuning/ring_dqn.md, last
-section); judged on 1,800 situations per run, 0.5 s had shown no effect, too few to tell.
+change. The default, 0, reads the gap now (urban.yaml uses it). config/ring.yaml uses h = 1 s (the
+gap rule's headway until its re-tuning on 2026-12-05): on 6,000 tuning situations per run it cut
+the ring DQN's caused collisions from 95 to 55 in 60,000 episodes and raised its success
+(results/tuning/ring_dqn.md, section "2026-12-05, third session"); judged on 1,800 situations per
+run, 0.5 s had shown no effect, too few to tell.
 
 The required-deceleration block is the safety quantity of gap-acceptance models such as MOBIL
 (Kesting, Treiber and Helbing 2007): how hard the ego must brake behind its new leader, or its new
