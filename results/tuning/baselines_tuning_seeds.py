@@ -37,7 +37,7 @@ def main() -> None:
         type=float,
         action="append",
         metavar=("LEAD", "FOLLOW", "HEADWAY"),
-        help="gap-acceptance thresholds to run instead of the tuned ones (repeatable)",
+        help="gap-acceptance thresholds to run instead of the tuned ones (repeatable; replaces --baselines)",
     )
     ap.add_argument("--seed-set", choices=("tuning", "report"), default="tuning",
                     help="tuning: TUNING_EVAL_SEED_BASE + k (default); report: EVAL_SEED_BASE + k")  # fmt: skip
