@@ -1,4 +1,4 @@
-"""A simulated two-node Ray cluster on this machine, started the way the README says (``ray start``).
+"""A simulated two-node Ray cluster on this machine, started the way docs/cluster.md says (``ray start``).
 
 Head and second node each bind to 127.0.0.1 with ports of their own; the second node has a
 custom resource (``node2``) and its own temporary folder (``TMPDIR``), where its workers train.

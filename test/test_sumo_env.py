@@ -184,7 +184,7 @@ def test_unsafe_lane_change_collides_with_penalty(ring: LaneChangeEnv) -> None:
 
 
 def test_safe_lane_change_pays_the_bonus_once_and_the_episode_goes_on(ring: LaneChangeEnv) -> None:
-    """The episode-structure rule (README "Design choices"): success pays +100 once, in the step of the
+    """The episode-structure rule (docs/design.md): success pays +100 once, in the step of the
     change, and the ego keeps driving on the target lane to the horizon with the speed reward flowing:
     the task is done, so later lane-change commands are no-ops; the outcome 'success' is reported at
     the horizon, as a truncation (the learner bootstraps through it)."""
