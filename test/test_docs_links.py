@@ -73,15 +73,15 @@ def anchors(md: Path) -> set[str]:
     return result
 
 
-def broken_links(md: Path) -> list[str]:
-    """A line per relative link of ``md`` whose file (or heading) does not exist."""
+def broken_links(md: Path, root: Path = ROOT) -> list[str]:
+    """A line per relative link of ``md`` whose file (or heading) does not exist (paths shown from ``root``)."""
     problems = []
     for lineno, target in links(md.read_text(encoding="utf-8")):
         if re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*:", target):  # http:, https:, mailto:, ...
             continue
         path_part, _, fragment = target.partition("#")
         dest = (md.parent / unquote(path_part)).resolve() if path_part else md
-        where = f"{md.relative_to(ROOT)}:{lineno}: {target}"
+        where = f"{md.relative_to(root)}:{lineno}: {target}"
         if not dest.exists():
             problems.append(f"{where} -> no such file {dest}")
         elif fragment and dest.suffix == ".md" and unquote(fragment) not in anchors(dest):
@@ -104,23 +104,13 @@ def test_the_checker_finds_a_broken_link_and_a_missing_heading(tmp_path: Path) -
     page = tmp_path / "page.md"
     page.write_text(
         "# Page\n[ok](other.md) [ok](other.md#a-code-heading-yes) ![img](missing.png)\n"
-        "[bad anchor](other.md#nope) <img src=\"gone.gif\"> [web](https://example.org/x)\n"
+        '[bad anchor](other.md#nope) <img src="gone.gif"> [web](https://example.org/x)\n'
         "```\n[in code](nowhere.md)\n```\n`[inline](nowhere.md)` [self](#page)\n",
         encoding="utf-8",
     )
-    # broken_links reports paths relative to ROOT, so place the page under a fake root
-    problems = [p.split(" -> ")[1] for p in _broken_links_outside_root(page)]
+    problems = [p.split(" -> ")[1] for p in broken_links(page, root=tmp_path)]
     assert problems == [
         f"no such file {tmp_path / 'missing.png'}",
         "no heading #nope in other.md",
         f"no such file {tmp_path / 'gone.gif'}",
     ]
-
-
-def _broken_links_outside_root(md: Path) -> list[str]:
-    global ROOT
-    saved, ROOT = ROOT, md.parent
-    try:
-        return broken_links(md)
-    finally:
-        ROOT = saved
