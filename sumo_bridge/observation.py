@@ -67,7 +67,7 @@ The present flag keeps "empty" distinguishable from "a vehicle exactly at the ra
 short-range gap channel gives the network resolution where a lane change is decided: whether the
 target-lane follower overlaps the ego by half a metre (a collision) or leaves a metre free (safe)
 is 0.05 apart in ``gap / 30 m`` but 0.3 apart in ``gap / 5 m``. On the tuning seeds it cut the
-greedy DQN's caused collisions on the ring from 3-13% to 1-1.3% (README, "Design choices").
+greedy DQN's caused collisions on the ring from 3-13% to 1-1.3% (docs/design.md).
 With ``near_gap_horizon = h > 0`` the channel reads the gap the vehicles will have ``h`` seconds
 later when that is smaller than the gap now: with h = 0.5 s (one decision interval on the shipped
 configs) a leader 0.8 m ahead but 3.7 m/s slower reads as an overlap, as it is one for a lane

@@ -45,7 +45,7 @@ class ScenarioConfig:
         "False (default): reaching the target lane pays reward_success once and the ego keeps driving to the "
         "horizon, so the speed reward keeps flowing whatever it did and a safe change now is optimal for any "
         "gamma. True: success terminates the episode (our earlier structure; it forfeits the speed reward of "
-        "the remaining steps, which makes never changing lane optimal for gamma > ~0.977, see the README)",
+        "the remaining steps, which makes never changing lane optimal for gamma > ~0.977, see docs/design.md)",
     )
     commit_on_success: bool = param(
         False,

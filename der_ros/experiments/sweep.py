@@ -7,7 +7,7 @@ Every grid point is one "method" of the suite machinery (:mod:`der_ros.experimen
 directories ``<out>/<point>/seed<k>/``, finished runs skipped, interrupted ones resumed. At the
 end ``<results>/sweep.md`` ranks the points by the IQM over seeds of the final greedy evaluation
 (``--rank-by``), and ``sweep.json`` holds every per-seed number. This is how we chose the settings
-the paper leaves open (on tuning seeds and tuning evaluation seeds only; see the README).
+the paper leaves open (on tuning seeds and tuning evaluation seeds only; see docs/evaluation.md).
 
 A sweep is tuning, so its greedy evaluations run on the **tuning** evaluation seeds
 (``TUNING_EVAL_SEED_BASE + k``) unless ``--set train.eval_seed_base=...`` says otherwise: the

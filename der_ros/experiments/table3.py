@@ -1,6 +1,6 @@
 """``der table3``: Table 3 of the paper (SUMO lane change: ring and urban network), evaluated greedily.
 
-Protocol (paper section 5.1, and the evaluation protocol of the README):
+Protocol (paper section 5.1, and the evaluation protocol of docs/evaluation.md):
 
 * DQN, PER and DER (lambda = 0.1 / 0.5 / 0.9) trained for 15,000 environment steps on each
   network; only the replay differs between methods (``config/ring.yaml``, ``config/urban.yaml``).
