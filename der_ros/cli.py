@@ -25,7 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "baselines": ("der_ros.experiments.baselines", "evaluate the baselines (keep, immediate, gap acceptance, SUMO's model...) or tune gap acceptance"),
     "sweep": ("der_ros.experiments.sweep", "run a grid of config overrides x seeds (tuning), ranked by greedy evaluation"),
     "graph": ("der_ros.graph.graph_cli", "run the ROS 2 graph: SUMO bridge, DER agent and MCAP recorder"),
-    "replay": ("der_ros.bag.replay_cli", "inspect, plot, export, train from and play recorded MCAP bags"),
+    "replay": ("der_ros.offline.bag_cli", "inspect, plot, export, train from and play recorded MCAP bags"),
     "bench": ("der_ros.bench_cli", "run a benchmark script from bench/"),
     "networks": ("sumo_bridge.network_cli", "build (or rebuild) the SUMO networks shipped with der_ros"),
 }

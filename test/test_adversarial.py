@@ -33,7 +33,7 @@ from ros_harness import REPO, ros_domain, ros_graph, wait_for  # noqa: F401 - fi
 from sensor_msgs.msg import Joy, PointCloud2
 
 from der_ros import contract as ct
-from der_ros.graph.runner import ros_environment
+from der_ros.graph.supervisor import ros_environment
 from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import empty_points, field_index
 from sumo_bridge.scenario import ScenarioConfig

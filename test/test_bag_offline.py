@@ -11,10 +11,10 @@ import torch
 from test_bag_helpers import record_env_bag
 
 from der_ros.agent.config import DQNConfig
-from der_ros.bag.export import build_transitions
-from der_ros.bag.offline_train import fill_replay, make_agent, online_numbers, train_offline
+from der_ros.offline.export import build_transitions
+from der_ros.offline.train_from_bags import fill_replay, make_agent, online_numbers, train_offline
 from der_ros.bag.reader import BagReader
-from der_ros.bag.replay_cli import bag_info
+from der_ros.offline.bag_cli import bag_info
 from der_ros.cli import main as der_main
 from der_ros.replay.config import ReplayConfig
 

@@ -18,7 +18,7 @@ import pytest
 from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
 from test_bag_helpers import record_env_bag, write_foreign_bag, write_json_mcap, write_mistyped_bag
 
-from der_ros.bag.play import play_bag
+from der_ros.offline.play import play_bag
 from der_ros.bag.reader import BagReader
 from der_ros.contract import QosSpec, merged_qos
 
@@ -160,7 +160,7 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
 
 def test_a_bag_with_other_types_on_our_topics_or_no_ros_messages_is_not_played(tmp_path: Path) -> None:
     """Our topic names with other types, or a JSON MCAP: an error naming what was found, nothing published."""
-    from der_ros.bag.export import build_transitions
+    from der_ros.offline.export import build_transitions
     from der_ros.bag.reader import BagError
 
     write_mistyped_bag(tmp_path / "mistyped", n=5)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from test_bag_helpers import GraphBagWriter, record_env_bag, write_foreign_bag
 
-from der_ros.bag.episodes import iter_steps, resolve_topics, scan_bag
-from der_ros.bag.export import build_transitions, load_transitions, save_transitions
-from der_ros.bag.plots import plot_bags
+from der_ros.offline.episodes import iter_steps, resolve_topics, scan_bag
+from der_ros.offline.export import build_transitions, load_transitions, save_transitions
+from der_ros.offline.bag_plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.bag.replay_cli import INFO_SCHEMA_VERSION, bag_info
+from der_ros.offline.bag_cli import INFO_SCHEMA_VERSION, bag_info
 from der_ros.cli import main as der_main
 
 
@@ -278,7 +278,7 @@ def test_namespaced_topics_resolve(tmp_path: Path) -> None:
 
 def test_observation_config_from_the_bag_or_the_run(tmp_path: Path) -> None:
     """export uses the agent's observation scales: bag custom_data, else der graph's params.yaml."""
-    from der_ros.bag.export import OBS_CONFIG_KEY, observation_config_of
+    from der_ros.offline.export import OBS_CONFIG_KEY, observation_config_of
     from sumo_bridge.observation import ObservationConfig, encode_observation
 
     truth_default = record_env_bag(tmp_path / "run" / "bag", episodes=1, max_episode_steps=5)

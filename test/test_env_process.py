@@ -162,7 +162,7 @@ def test_env_process_is_refused_for_a_bad_type() -> None:
 
 
 def test_auto_puts_only_the_sumo_envs_in_a_worker_and_only_with_two_cpus_per_run(monkeypatch) -> None:
-    from der_ros.experiments.backends import local
+    from der_ros.experiments.backends.dispatch import local
     from der_ros.train.env_process import CPUS_PER_RUN_ENV, MIN_STEPS_FOR_WORKER, cpus_per_run, use_env_process
 
     ring, cartpole = "der_ros/LaneChangeRing-v0", "CartPole-v1"

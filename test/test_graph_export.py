@@ -26,7 +26,7 @@ from ros_harness import *  # noqa: F403 - ros_domain fixture
 from test_graph_cli import der_graph, node_logs, reap
 
 from der_ros.agent.dqn import DQNAgent
-from der_ros.bag.export import build_transitions
+from der_ros.offline.export import build_transitions
 from der_ros.bag.reader import BagReader
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from der_ros.graph.runner import ChildFailed, ProcessSpec, Supervisor, reserve_domain_id, ros_environment
+from der_ros.graph.supervisor import ChildFailed, ProcessSpec, Supervisor, reserve_domain_id, ros_environment
 
 # A child that logs "ready", then waits; on SIGINT/SIGTERM it appends "<name> <signal>" to a journal
 # and exits (or ignores the signal when told to).

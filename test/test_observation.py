@@ -206,7 +206,7 @@ def test_the_required_deceleration_block(slot: str) -> None:
 
 
 def test_the_env_and_the_graph_size_their_networks_from_the_same_observation_config() -> None:
-    from der_ros.graph.evaluation import observation_shape
+    from der_ros.graph.snapshot_evaluation import observation_shape
     from der_ros.train.config import EnvConfig
     from sumo_bridge.observation import observation_space
 

@@ -23,7 +23,7 @@ import pytest
 import ray
 from ray_helpers import CARTPOLE, LOOPBACK, free_port, ray_listening_addresses, ray_test_env, small_cartpole
 
-from der_ros.experiments.backends import RayBackend, RunEvent, run_specs
+from der_ros.experiments.backends.dispatch import RayBackend, RunEvent, run_specs
 from der_ros.experiments.backends.ray_cluster import loopback_ray
 from der_ros.experiments.suite import methods_by_name, plan_runs
 

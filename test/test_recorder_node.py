@@ -164,7 +164,7 @@ def test_scene_topics_are_recorded_by_default_and_the_road_though_published_befo
     from visualization_msgs.msg import MarkerArray
 
     from der_ros import contract as ct
-    from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
+    from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
     from der_ros.contract_ros import topic_qos
     from der_ros.nodes.msg_conversions import make_episode_event
 

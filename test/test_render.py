@@ -12,12 +12,12 @@ from PIL import Image
 from test_bag_helpers import record_env_bag
 
 from der_ros import cli
-from der_ros.bag import animation
-from der_ros.bag.episode_recording import record_episode
-from der_ros.bag.episodes import EpisodeSummary
+from der_ros.offline import animation
+from der_ros.offline.episode_recording import record_episode
+from der_ros.offline.episodes import EpisodeSummary
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.bag.render import PALETTE, ROLE_RGB, RenderOptions, caption_lines, frame_view, render_bag
-from der_ros.bag.scene_frames import read_scene, select_episodes
+from der_ros.offline.render import PALETTE, ROLE_RGB, RenderOptions, caption_lines, frame_view, render_bag
+from der_ros.offline.scene_frames import read_scene, select_episodes
 from der_ros.contract import ACTION_NAMES
 from sumo_bridge.lane_change_env import ACTION_MEANINGS, LaneChangeEnv
 from sumo_bridge.scenario import ScenarioConfig

@@ -14,7 +14,7 @@ import pytest
 import sumolib
 
 from der_ros import contract as ct
-from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
+from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.writer import jazzy_typestore
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.scenario import ScenarioConfig

@@ -21,7 +21,7 @@ from test_graph_cli import bag_meta, reap, wait_for_states
 
 from der_ros.agent.dqn import DQNAgent
 from der_ros.bag.writer import FINALIZED_KEY
-from der_ros.graph.runner import ros_environment
+from der_ros.graph.supervisor import ros_environment
 
 REPO = Path(__file__).resolve().parents[1]
 CARTPOLE = REPO / "config" / "cartpole.yaml"

@@ -1,4 +1,4 @@
-"""The bridge's per-step messages as CDR bytes (der_ros/bag/step_cdr.py): rclpy decodes them into exactly
+"""The bridge's per-step messages as CDR bytes (der_ros/contract/): rclpy decodes them into exactly
 the messages of the builders in der_ros/nodes/msg_conversions.py, and rosbags' serialiser gives the same bytes."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 
-from der_ros.bag.step_cdr import clock_cdr, command_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.bag.step_cdr_read import read_command_cdr, read_reward_cdr, read_state_cdr
+from der_ros.contract import clock_cdr, command_cdr, odometry_cdr, reward_cdr, state_cdr
+from der_ros.contract import read_command_cdr, read_reward_cdr, read_state_cdr
 from der_ros.bag.writer import jazzy_typestore
 from der_ros.contract import cloud_to_points, header_ns, parse_command, parse_reward
 from der_ros.nodes import msg_conversions as mc
@@ -55,7 +55,7 @@ def test_clock_and_odometry() -> None:
         clock_cdr(-1)
 
 
-# -- reading them back without rclpy (der_ros/bag/step_cdr_read.py): the fast path agrees with rclpy + the
+# -- reading them back without rclpy (der_ros/contract/): the fast path agrees with rclpy + the
 # contract's parsers on every message, and says None (decode with rclpy) for any layout it does not own
 def test_command() -> None:
     for stamp, action, sender in ((0, 0, ""), (123, 2, "/agent_node#12"), (10**12 + 5, 1, "/ns/agent_node#4567")):

@@ -173,7 +173,7 @@ def test_table2_short_atari_run(tmp_path: Path) -> None:
 
 
 def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
-    from der_ros.experiments.backends import run_specs
+    from der_ros.experiments.backends.dispatch import run_specs
     from der_ros.experiments.suite import PAPER_METHODS, SuiteRunError, plan_runs
 
     dqn = [m for m in PAPER_METHODS if m.name == "dqn"]
@@ -192,7 +192,7 @@ def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
 
 def test_a_run_directory_made_with_other_settings_is_refused(tmp_path: Path) -> None:
     from der_ros.configuration import ConfigError
-    from der_ros.experiments.backends import run_specs
+    from der_ros.experiments.backends.dispatch import run_specs
     from der_ros.experiments.suite import run_one
 
     dqn = [m for m in PAPER_METHODS if m.name == "dqn"]

@@ -1,4 +1,4 @@
-"""The helper scripts under results/tuning/ that the tuning notes cite run as documented."""
+"""The helper scripts under research/tuning/ that the tuning notes cite run as documented."""
 
 from __future__ import annotations
 

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
-from der_ros.experiments.plots import plot_learning_curves, save_figure
-from der_ros.experiments.report import run_details, total_training_time, write_markdown
+from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
+from der_ros.experiments.suite_plots import plot_learning_curves, save_figure
+from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,

@@ -8,7 +8,7 @@ transition rule and the episode accounting live in the ROS-free
 :class:`der_ros.agent.dqn.DQNAgent` and publishes.
 
 The state, the reward and the command are on the lockstep's round trip, so they are read and written
-as CDR bytes (:mod:`der_ros.bag.step_cdr_read`, :mod:`der_ros.bag.step_cdr`; the graph went from
+as CDR bytes (:mod:`der_ros.contract`, :mod:`der_ros.contract`; the graph went from
 ~0.8x to ~0.89x the in-process loop, ``bench/README.md``); bytes in any other valid encoding are
 decoded by rclpy and parsed by the contract, which names what is wrong with a bad message.
 
@@ -51,8 +51,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.online import OnlineLearner
-from der_ros.bag.step_cdr import command_cdr
-from der_ros.bag.step_cdr_read import read_reward_cdr, read_state_cdr
+from der_ros.contract import command_cdr
+from der_ros.contract import read_reward_cdr, read_state_cdr
 from der_ros.contract import (
     COMMAND,
     EPISODE,

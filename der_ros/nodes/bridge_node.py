@@ -6,7 +6,7 @@ points), then ``/clock``, ``ego/odom``, ``scene/vehicles`` (every vehicle as a m
 on) and, on episode start/end, ``episode``; it applies the actions
 arriving on ``lane_change_cmd``. With ``markers`` on it also publishes the road once on the
 latched ``scene/road``. The markers come from the env's scene (:mod:`sumo_bridge.scene`), encoded
-by :mod:`der_ros.bag.scene_cdr` and published as CDR bytes (a tenth of the cost of building rclpy
+by :mod:`der_ros.contract` and published as CDR bytes (a tenth of the cost of building rclpy
 messages, figures there); they go out after ``state``, while the agent computes its answer.
 
 Step keys: the bridge counts every published state with a global counter k (across episodes,
@@ -62,9 +62,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
-from der_ros.bag.step_cdr import clock_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.bag.step_cdr_read import read_command_cdr
+from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
+from der_ros.contract import clock_cdr, odometry_cdr, reward_cdr, state_cdr
+from der_ros.contract import read_command_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,

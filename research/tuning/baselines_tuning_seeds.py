@@ -1,17 +1,17 @@
 """Evaluate baselines on the first N tuning evaluation seeds (what a sweep's runs are scored on).
 
-The reference for results/tuning/ring_dqn.md's 1,800-episode comparisons: the tuned gap-acceptance
+The reference for research/tuning/ring_dqn.md's 1,800-episode comparisons: the tuned gap-acceptance
 rule (and the other baselines) on the same tuning evaluation seeds (``TUNING_EVAL_SEED_BASE + k``)
 as ``--set train.final_eval_episodes=N`` gives a sweep's runs. Prints success / caused collision /
 time-limit counts per baseline.
 
-    python results/tuning/baselines_tuning_seeds.py config/ring.yaml --baselines gap_acceptance sumo --episodes 1800
+    python research/tuning/baselines_tuning_seeds.py config/ring.yaml --baselines gap_acceptance sumo --episodes 1800
 
 ``--gap LEAD FOLLOW HEADWAY`` (repeatable) runs the gap-acceptance rule with other thresholds
 instead of the tuned ones (config/baselines.yaml), to see where its caused collisions begin.
 ``--seed-set report`` runs on the report evaluation seeds (``EVAL_SEED_BASE + k``) instead, for a
 setting already chosen on the tuning seeds; ``--out DIR`` also saves each evaluation as
-``DIR/<name>[_<lead>_<follow>_<headway>]/evaluation.json`` for results/tuning/compare_arms.py.
+``DIR/<name>[_<lead>_<follow>_<headway>]/evaluation.json`` for research/tuning/compare_arms.py.
 """
 
 from __future__ import annotations

@@ -14,10 +14,10 @@ Each state is simulated once, so near the boundary a label is one draw of a chan
 ``score`` loads each run's ``checkpoint.pt`` and ``config.yaml``, encodes the saved points with
 that run's observation settings, and counts the states where the greedy action is the change:
 those labelled *collided* (changes the net would take into a collision) and those labelled safe
-(opportunities it takes). results/tuning/ring_dqn.md, tenth session.
+(opportunities it takes). research/tuning/ring_dqn.md, tenth session.
 
-    python results/tuning/boundary_probe.py collect config/ring.yaml --changes 6000 --out runs/boundary.npz
-    python results/tuning/boundary_probe.py score runs/boundary.npz RUN_DIR [RUN_DIR ...]
+    python research/tuning/boundary_probe.py collect config/ring.yaml --changes 6000 --out runs/boundary.npz
+    python research/tuning/boundary_probe.py score runs/boundary.npz RUN_DIR [RUN_DIR ...]
 """
 
 from __future__ import annotations

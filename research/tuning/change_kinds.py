@@ -1,16 +1,16 @@
 """How often does a greedy ring policy change lanes into each kind of state, and with what outcome?
 
-Counterpart of results/tuning/collision_states.py: it replays the first ``EPISODES`` report
+Counterpart of research/tuning/collision_states.py: it replays the first ``EPISODES`` report
 evaluation situations (``EVAL_SEED_BASE + k``) with each run's greedy policy and classifies the
 state of the last lane change each episode commanded, with the shield test of
-results/tuning/shield_eval.py: a target-side gap < 0 now ("overlap"), < 0 within 1 s at constant
+research/tuning/shield_eval.py: a target-side gap < 0 now ("overlap"), < 0 within 1 s at constant
 speeds ("closes"), or neither; and whether the tuned gap rule (config/baselines.yaml) would have
 changed there too ("rule accepts" / "rule rejects"). It prints the counts per (outcome, kind, rule)
 for each run and summed over the runs: whether those kinds are collisions waiting to happen or
 mostly safe (the other vehicle brakes, or the along-road gap on the curved ring is not a lateral
 overlap), i.e. what collision risk the policy takes when it changes where the rule would not.
 
-    python results/tuning/change_kinds.py EPISODES RUN_DIR [RUN_DIR ...]
+    python research/tuning/change_kinds.py EPISODES RUN_DIR [RUN_DIR ...]
 """
 
 from __future__ import annotations

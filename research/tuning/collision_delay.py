@@ -1,10 +1,10 @@
-"""How many decisions after its lane change does a caused collision happen? (results/tuning/ring_dqn.md)
+"""How many decisions after its lane change does a caused collision happen? (research/tuning/ring_dqn.md)
 
 Runs the immediate-change baseline (``sumo_bridge.policies.immediate_policy``) on ring
 episodes with seeds 1,700,000,000 + k, outside the training, tuning and report seed sets, and
 counts the decisions between the change and each caused collision.
 
-    python results/tuning/collision_delay.py [--episodes 200] [--config config/ring.yaml]
+    python research/tuning/collision_delay.py [--episodes 200] [--config config/ring.yaml]
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What the gap rule would have done where a trained policy caused a collision (results/tuning/ring_dqn.md).
+"""What the gap rule would have done where a trained policy caused a collision (research/tuning/ring_dqn.md).
 
 For each run directory (``config.yaml`` and ``checkpoint.pt``) and the evaluation seeds where that
 run caused a collision (read from ``--evaluations DIR/<method>/<seed dir>/evaluation.json``, e.g.
@@ -6,12 +6,12 @@ results/run_files/table3_ring_h1_eval3000), replays the episode with the run's g
 prints the state at the decision where it commanded the lane change that collided: the gaps (m)
 and relative speeds (m/s) of the target-side leader and follower, and whether the tuned
 gap-acceptance rule (config/baselines.yaml) would have accepted that same gap, and which of three
-kinds the state is (results/tuning/shield_eval.py's test): a target-side bumper-to-bumper gap
+kinds the state is (research/tuning/shield_eval.py's test): a target-side bumper-to-bumper gap
 along the road is below 0 now ("overlap"), or one closes to below 0 within 1 s at constant speeds
 ("closes", what the 1 s near-gap channel reads as < 0), or "neither". Such states are not certain
-collisions (results/tuning/change_kinds.py). Diagnosis only; nothing is tuned on it.
+collisions (research/tuning/change_kinds.py). Diagnosis only; nothing is tuned on it.
 
-    python results/tuning/collision_states.py RUN_DIR [RUN_DIR ...] --evaluations DIR
+    python research/tuning/collision_states.py RUN_DIR [RUN_DIR ...] --evaluations DIR
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Compare two settings' greedy evaluations situation by situation (results/tuning/ring_dqn.md).
+"""Compare two settings' greedy evaluations situation by situation (research/tuning/ring_dqn.md).
 
 Each arm is a set of run directories evaluated on the same evaluation seeds (their
 ``evaluation.json``). Per seed ("traffic situation") it takes each arm's success rate and caused
 collision rate over its runs, and tests the mean of the differences (arm B minus arm A) with
 :func:`der_ros.experiments.stats.paired_permutation_p`.
 
-    python results/tuning/compare_arms.py --a RUN_DIR ... --b RUN_DIR ...
+    python research/tuning/compare_arms.py --a RUN_DIR ... --b RUN_DIR ...
 """
 
 from __future__ import annotations

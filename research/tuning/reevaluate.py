@@ -5,12 +5,12 @@ collisions, that cannot tell two settings apart. This runs each checkpoint on th
 ``--episodes`` tuning evaluation seeds (``TUNING_EVAL_SEED_BASE + k``, the seeds a sweep with
 ``train.final_eval_episodes = --episodes`` would use; the first 300 are the sweep's own) and
 prints success / caused collision / time-limit counts per run and in total
-(results/tuning/ring_dqn.md, sixth session). ``--seed-set report`` uses the report evaluation
+(research/tuning/ring_dqn.md, sixth session). ``--seed-set report`` uses the report evaluation
 seeds (``EVAL_SEED_BASE + k``) instead, for a finished report run that is no longer tuned; the
 first 300 are then the table's own evaluation. ``--out DIR`` also saves each run's episodes as
-``DIR/<method>/<seed dir>/evaluation.json``, which results/tuning/compare_arms.py reads.
+``DIR/<method>/<seed dir>/evaluation.json``, which research/tuning/compare_arms.py reads.
 
-    python results/tuning/reevaluate.py RUN_DIR [RUN_DIR ...] [--episodes 1800] \
+    python research/tuning/reevaluate.py RUN_DIR [RUN_DIR ...] [--episodes 1800] \
         [--seed-set tuning|report] [--out DIR]
 """
 

@@ -5,10 +5,10 @@ follower on the side of the change) overlaps the ego now (gap < 0) or would with
 seconds at constant speeds (leader: gap + rel_speed * h < 0; follower: gap - rel_speed * h < 0).
 Everything else is the run's greedy policy. Each run's final checkpoint is evaluated on the first
 ``--episodes`` report evaluation seeds (``EVAL_SEED_BASE + k``) and saved as
-``--out DIR/<method>/<seed dir>/evaluation.json`` for results/tuning/compare_arms.py
+``--out DIR/<method>/<seed dir>/evaluation.json`` for research/tuning/compare_arms.py
 (results/run_files/table3_ring_h1_eval3000/README.md, last section).
 
-    python results/tuning/shield_eval.py RUN_DIR [RUN_DIR ...] --out DIR [--episodes 3000] [--horizon 1.0]
+    python research/tuning/shield_eval.py RUN_DIR [RUN_DIR ...] --out DIR [--episodes 3000] [--horizon 1.0]
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 A seeded evaluation episode always builds the ring's traffic afresh; training resets mostly
 re-place the last build's traffic (``ring_rebuild_every``). This runs each checkpoint for
 ``--episodes`` episodes of one stream (a seeded reset, then unseeded ones) and prints the outcome
-counts, to check whether the caused-collision rate differs between the two (results/tuning/ring_dqn.md).
+counts, to check whether the caused-collision rate differs between the two (research/tuning/ring_dqn.md).
 
-    python results/tuning/stream_eval.py RUN_DIR [RUN_DIR ...] [--episodes 6000] [--seed 1700000000]
+    python research/tuning/stream_eval.py RUN_DIR [RUN_DIR ...] [--episodes 6000] [--seed 1700000000]
 """
 
 from __future__ import annotations

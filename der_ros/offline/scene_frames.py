@@ -4,13 +4,13 @@ What ``der replay render`` draws: the road (``scene/road``), and for every decis
 chosen episodes the vehicles as they were (``scene/vehicles``, markers applied in order: ADD
 moves or adds, DELETE removes, DELETEALL clears), joined by the step key t_k with the reward of
 arriving there and the action taken from there (``reward`` and ``lane_change_cmd``, parsed by
-:mod:`der_ros.contract`). Episodes come from :func:`der_ros.bag.episodes.scan_bag`, so they are
+:mod:`der_ros.contract`). Episodes come from :func:`der_ros.offline.episodes.scan_bag`, so they are
 numbered as ``der replay info`` shows them.
 
 The bridge puts every vehicle into every ``scene/vehicles`` message (plus a DELETE for each one
 gone), so the scene of a step needs no message before its episode: messages stamped before the
 chosen episodes are skipped without decoding (their stamp read from the CDR header,
-:func:`der_ros.bag.scene_cdr.first_stamp_ns`), which keeps rendering one episode of a long urban
+:func:`der_ros.contract.first_stamp_ns`), which keeps rendering one episode of a long urban
 bag (~220 markers a step) from decoding all of them.
 
 A bag recorded without markers (bridge ``markers:=false`` or recorder ``record_scene:=false``)
@@ -22,9 +22,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from der_ros.bag.episodes import EpisodeSummary, resolve_topics, scan_bag
+from der_ros.offline.episodes import EpisodeSummary, resolve_topics, scan_bag
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.bag.scene_cdr import first_stamp_ns
+from der_ros.contract import first_stamp_ns
 from der_ros.contract import (
     COMMAND,
     EGO_ROLE,

@@ -28,7 +28,7 @@ from builtin_interfaces.msg import Time
 from rclpy.executors import ExternalShutdownException
 from rosgraph_msgs.msg import Clock
 
-from der_ros.bag.episodes import mistyped_topics
+from der_ros.offline.episodes import mistyped_topics
 from der_ros.bag.reader import BagError, BagReader, Connection, Message
 from der_ros.contract import CLOCK, merged_qos, topic_by_name, topic_spec
 from der_ros.contract_ros import message_class, qos_profile

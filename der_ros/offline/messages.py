@@ -2,9 +2,9 @@
 
 The rclpy builders the nodes publish with are :mod:`der_ros.nodes.msg_conversions`; these build
 the same layouts (:mod:`der_ros.contract`) from the Jazzy typestore, so a bag written offline
-(e.g. ``der graph``'s greedy episode, :mod:`der_ros.bag.episode_recording`) reads exactly like one
+(e.g. ``der graph``'s greedy episode, :mod:`der_ros.offline.episode_recording`) reads exactly like one
 recorded from the graph. Episode events: :meth:`der_ros.bag.writer.BagWriter.mark_episode`; scene
-markers: :mod:`der_ros.bag.scene_cdr` (CDR bytes).
+markers: :mod:`der_ros.contract` (CDR bytes).
 """
 
 from __future__ import annotations

@@ -568,7 +568,7 @@ def points_from_buffer(data: Any, n: int, names: Sequence[str], bigendian: bool 
     """The ``(n, len(names))`` float64 points of a ``state``'s data bytes (FLOAT64 fields in order), a
     copy; ValueError naming the point and field of a value that is not finite or beyond float32's range.
     The last step of :func:`cloud_to_points`, shared with the CDR reader of the agent node
-    (:mod:`der_ros.bag.step_cdr_read`), which has checked the rest of the layout itself."""
+    (:mod:`der_ros.contract`), which has checked the rest of the layout itself."""
     dtype = np.dtype(">f8" if bigendian else "<f8")
     # rclpy gives array.array/bytes, rosbags a uint8 ndarray: all expose the buffer protocol
     points = np.frombuffer(data, dtype=dtype).astype(np.float64).reshape(n, len(names))

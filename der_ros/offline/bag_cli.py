@@ -24,12 +24,12 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from der_ros.bag.episodes import scan_bag
-from der_ros.bag.export import build_transitions, save_transitions
-from der_ros.bag.offline_train import add_train_arguments, run_train
-from der_ros.bag.plots import plot_bags
+from der_ros.offline.episodes import scan_bag
+from der_ros.offline.export import build_transitions, save_transitions
+from der_ros.offline.train_from_bags import add_train_arguments, run_train
+from der_ros.offline.bag_plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader, DamagedChunk, DamagedChunkWarning, TruncatedBagWarning
-from der_ros.bag.render import RenderOptions, render_bag
+from der_ros.offline.render import RenderOptions, render_bag
 from der_ros.configuration import load_yaml
 from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
 from sumo_bridge.observation import ObservationConfig
@@ -291,7 +291,7 @@ def _run_render(args: argparse.Namespace) -> int:
 
 def _run_play(args: argparse.Namespace) -> int:
     try:
-        from der_ros.bag.play import run_play  # lazy: rclpy, which only play needs
+        from der_ros.offline.play import run_play  # lazy: rclpy, which only play needs
     except ImportError as exc:  # the reading tools work without ROS; play does not
         print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}", file=sys.stderr)
         return 1

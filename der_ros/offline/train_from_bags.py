@@ -1,7 +1,7 @@
 """``der replay train``: train a DQN from recorded transitions only, then evaluate it in SUMO.
 
 Offline means gradient steps on a replay buffer filled once from the bags' transitions
-(:func:`der_ros.bag.export.build_transitions`, the exact observations the online agent saw);
+(:func:`der_ros.offline.export.build_transitions`, the exact observations the online agent saw);
 the learner never acts in the environment while training. The replay kind is any of the
 online ones (uniform, PER, DER with its lambda): DER's H2 promotion and eq. 3 weights work
 the same on a fixed buffer, which is what makes this a cheap way to compare replay kinds on
@@ -27,8 +27,8 @@ import numpy as np
 import yaml
 
 from der_ros.agent.config import DQNConfig
-from der_ros.bag.episodes import scan_bag
-from der_ros.bag.export import Transitions, build_transitions
+from der_ros.offline.episodes import scan_bag
+from der_ros.offline.export import Transitions, build_transitions
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import ConfigError, flatten_names, load_yaml, unflatten_names, validate
 from der_ros.contract import EPISODE_COLLISION, EPISODE_SUCCESS, EPISODE_TIME_LIMIT

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from der_ros.bag.episodes import BagScan, scan_bag
+from der_ros.offline.episodes import BagScan, scan_bag
 from der_ros.bag.reader import BagReader
 from der_ros.contract import EPISODE_ENDS
 

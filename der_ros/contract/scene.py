@@ -24,13 +24,13 @@ import math
 import struct
 from collections.abc import Iterable, Sequence
 
-from der_ros.bag.cdr import ENCAPSULATION as _ENCAPSULATION
-from der_ros.bag.cdr import NS as _NS
-from der_ros.bag.cdr import STAMP as _STAMP
-from der_ros.bag.cdr import U32 as _U32
-from der_ros.bag.cdr import cdr_string as _string
-from der_ros.bag.cdr import stamp_parts
-from der_ros.contract import (
+from der_ros.contract.cdr import ENCAPSULATION as _ENCAPSULATION
+from der_ros.contract.cdr import NS as _NS
+from der_ros.contract.cdr import STAMP as _STAMP
+from der_ros.contract.cdr import U32 as _U32
+from der_ros.contract.cdr import cdr_string as _string
+from der_ros.contract.cdr import stamp_parts
+from der_ros.contract.topics import (
     LANE_COLOUR,
     LANE_NS,
     MARKER_ADD,

@@ -1,5 +1,5 @@
-"""Plain-CDR primitives shared by our hand-written encoders (:mod:`~der_ros.bag.scene_cdr`,
-:mod:`~der_ros.bag.step_cdr`).
+"""Plain-CDR primitives shared by our hand-written encoders (:mod:`~der_ros.contract`,
+:mod:`~der_ros.contract`).
 
 Plain CDR, little endian: a 4-byte encapsulation header, then every field in declaration order,
 aligned to its size relative to the end of that header, padding zeroed (what rosbags' serialiser

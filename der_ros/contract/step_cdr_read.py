@@ -1,7 +1,7 @@
 """Reading the per-step messages straight from their CDR bytes, without rclpy: ``state`` and ``reward``
 (the agent node), ``lane_change_cmd`` (the bridge node).
 
-The other half of :mod:`der_ros.bag.step_cdr`. Each reader takes the bytes a raw subscription hands
+The other half of :mod:`der_ros.contract`. Each reader takes the bytes a raw subscription hands
 over and returns what the contract's parser (:mod:`der_ros.contract`) returns for the decoded message,
 or **None when the bytes are not laid out the way our encoders write them** (big-endian or XCDR2
 encapsulation, another field table, a truncated or padded message): the caller then decodes them with
@@ -23,10 +23,10 @@ import struct
 
 import numpy as np
 
-from der_ros.bag.cdr import ENCAPSULATION
-from der_ros.bag.cdr import NS as _NS
-from der_ros.bag.step_cdr import state_field_table
-from der_ros.contract import Reward, points_from_buffer, reward_from_fields
+from der_ros.contract.cdr import ENCAPSULATION
+from der_ros.contract.cdr import NS as _NS
+from der_ros.contract.step_cdr import state_field_table
+from der_ros.contract.topics import Reward, points_from_buffer, reward_from_fields
 
 __all__ = ["read_state_cdr", "read_reward_cdr", "read_command_cdr"]
 
@@ -64,7 +64,7 @@ def _align(offset: int, n: int) -> int:
 
 
 def read_state_cdr(data: bytes, fields: tuple[str, ...]) -> tuple[int, np.ndarray] | None:
-    """(stamp ns, points) of a ``state`` PointCloud2 laid out as :func:`~der_ros.bag.step_cdr.state_cdr`
+    """(stamp ns, points) of a ``state`` PointCloud2 laid out as :func:`~der_ros.contract.state_cdr`
     writes it with these ``fields``, or None for any other layout (decode with rclpy then). ValueError,
     as :func:`~der_ros.contract.cloud_to_points`, for a point that is not finite or beyond float32."""
     head = _header(data)

@@ -1,6 +1,6 @@
 """``der replay render``: a top-down animation of recorded episodes, drawn from a bag's scene markers.
 
-Each recorded decision step becomes one frame (:mod:`der_ros.bag.scene_frames`): the road (every
+Each recorded decision step becomes one frame (:mod:`der_ros.offline.scene_frames`): the road (every
 lane a ribbon as wide as the lane, a thin gap between neighbours as the lane marking), every
 vehicle a rotated rectangle in its role's colour (:data:`der_ros.contract.ROLE_COLOURS`; the ego
 red with a black outline), and a caption with the episode, the step, the action taken from there,
@@ -11,7 +11,7 @@ still; a larger one (the urban network, ~2 km) is drawn in a ``window``-metre sq
 the ego, north up, so vehicles stay a few pixels wide instead of dots. :func:`frame_view` gives a
 frame's world-to-pixel mapping (tests use it to find the ego's pixel).
 
-Drawn with Pillow's ``ImageDraw`` on an RGB canvas and written by :mod:`der_ros.bag.animation`
+Drawn with Pillow's ``ImageDraw`` on an RGB canvas and written by :mod:`der_ros.offline.animation`
 (GIF with a fixed palette, or MP4): no matplotlib figure per frame, so a 40-step episode renders
 in well under its 20 simulated seconds (figure in ``bench/render.py``).
 """
@@ -25,9 +25,9 @@ from pathlib import Path
 
 from PIL import Image, ImageDraw, ImageFont
 
-from der_ros.bag.animation import check_output, write_animation
+from der_ros.offline.animation import check_output, write_animation
 from der_ros.bag.reader import BagReader
-from der_ros.bag.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
+from der_ros.offline.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
 from der_ros.contract import ACTION_NAMES, EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
 
 __all__ = ["RenderOptions", "View", "RenderResult", "network_view", "follow_view", "frame_view", "draw_frame",

@@ -1,6 +1,6 @@
 """The per-step messages (``/clock``, ``reward``, ``state``, ``ego/odom``, the agent's ``lane_change_cmd``) as CDR bytes, without ROS.
 
-Like :mod:`der_ros.bag.scene_cdr`: ``Publisher.publish(bytes)`` sends them as they are. Plain CDR,
+Like :mod:`der_ros.contract`: ``Publisher.publish(bytes)`` sends them as they are. Plain CDR,
 little endian (encapsulation ``00 01 00 00``), every field in declaration order, aligned to its size
 relative to the end of the encapsulation header, padding zeroed: rosbags' serialiser gives the same
 bytes, and rclpy decodes them into the same messages as the builders of
@@ -13,7 +13,7 @@ took ~40 us for the state (its twelve PointField objects alone ~10 us), ~15 us f
 ~25 us for the odometry; these encoders take a few us each (``bench/graph.py`` times the graph).
 The parts that never change (the state's field table, the odometry's covariances) are laid out once.
 The agent's answer, ``lane_change_cmd``, is on the same path the other way (:func:`command_cdr`).
-Reading them back without rclpy: :mod:`der_ros.bag.step_cdr_read`.
+Reading them back without rclpy: :mod:`der_ros.contract`.
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ from functools import lru_cache
 
 import numpy as np
 
-from der_ros.bag.cdr import ENCAPSULATION as _ENCAPSULATION
-from der_ros.bag.cdr import STAMP as _STAMP
-from der_ros.bag.cdr import U32 as _U32
-from der_ros.bag.cdr import cdr_string as _string
-from der_ros.bag.cdr import pad as _pad
-from der_ros.bag.cdr import stamp_parts
-from der_ros.contract import applied_action_frame
+from der_ros.contract.cdr import ENCAPSULATION as _ENCAPSULATION
+from der_ros.contract.cdr import STAMP as _STAMP
+from der_ros.contract.cdr import U32 as _U32
+from der_ros.contract.cdr import cdr_string as _string
+from der_ros.contract.cdr import pad as _pad
+from der_ros.contract.cdr import stamp_parts
+from der_ros.contract.topics import applied_action_frame
 from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = ["clock_cdr", "command_cdr", "reward_cdr", "state_cdr", "state_field_table", "odometry_cdr"]

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.bag.messages import command_message, reward_message, state_message
-from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
+from der_ros.offline.messages import command_message, reward_message, state_message
+from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.writer import BagWriter
 from der_ros.contract import (
     COMMAND,
@@ -61,7 +61,7 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
     """
     env.enable_scene()
     step_ns = int(round(float(env.step_seconds) * _NS))
-    writer = BagWriter(path, custom_data={"der_ros/recorded_by": "der_ros.bag.episode_recording"})
+    writer = BagWriter(path, custom_data={"der_ros/recorded_by": "der_ros.offline.episode_recording"})
     try:
         for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND):
             writer.add_topic(name, topic_spec(name).msgtype)
@@ -84,7 +84,7 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
                                     lane_changes=lane_changes, mean_speed=speed_sum / max(k, 1), stamp_ns=t)  # fmt: skip
                 return RecordedEpisode(Path(path), k, ret, str(event), lane_changes)
             action = int(act(obs))
-            writer.write_message(COMMAND, t + _AT_COMMAND, command_message(t, action, "der_ros.bag.episode_recording"))
+            writer.write_message(COMMAND, t + _AT_COMMAND, command_message(t, action, "der_ros.offline.episode_recording"))
             obs, r, terminated, truncated, info = env.step(action)
             reward, applied = float(r), action
             ret += reward
