@@ -31,9 +31,9 @@ def _check(data: bytes, expected: object, rclpy_type: type, rosbags_type: str) -
 def test_state(rows: int, frame: str) -> None:
     pts = np.random.default_rng(rows).normal(size=(rows, 12)) * 50.0
     stamp = 1_234_567_891_234
-    _check(state_cdr(pts, stamp, frame), mc.points_to_cloud(pts, stamp, frame), PointCloud2, "sensor_msgs/msg/PointCloud2")
+    _check(state_cdr(pts, stamp, frame, fields=POINT_FIELDS), mc.points_to_cloud(pts, stamp, frame), PointCloud2, "sensor_msgs/msg/PointCloud2")
     with pytest.raises(ValueError, match="shape"):
-        state_cdr(pts[:, :5], stamp)
+        state_cdr(pts[:, :5], stamp, fields=POINT_FIELDS)
 
 
 @pytest.mark.parametrize("applied", [None, 0, 2, 17])
@@ -83,10 +83,10 @@ def _rclpy_or_error(fn: object) -> object:
 @pytest.mark.parametrize("frame", ["ego", "", "é"])
 def test_read_state(frame: str) -> None:
     pts = np.random.default_rng(3).normal(size=(9, 12)) * 50.0
-    data = state_cdr(pts, 1_234_567_891_234, frame)
+    data = state_cdr(pts, 1_234_567_891_234, frame, fields=POINT_FIELDS)
     stamp, read = read_state_cdr(data, POINT_FIELDS)
     assert stamp == 1_234_567_891_234 and np.array_equal(read, pts) and read.flags.writeable
-    assert read_state_cdr(state_cdr(pts[:0], 7, frame), POINT_FIELDS)[1].shape == (0, 12)
+    assert read_state_cdr(state_cdr(pts[:0], 7, frame, fields=POINT_FIELDS), POINT_FIELDS)[1].shape == (0, 12)
     # rclpy's serialiser leaves padding bytes as they were: not our layout, so the general path decodes it
     general = serialize_message(mc.points_to_cloud(pts, 5, frame))
     fast = read_state_cdr(general, POINT_FIELDS)
@@ -100,7 +100,7 @@ def test_read_state(frame: str) -> None:
     bad = pts.copy()
     bad[4, 6] = np.inf
     with pytest.raises(ValueError, match="state point 4 field") as fast_err:
-        read_state_cdr(state_cdr(bad, 5, frame), POINT_FIELDS)
+        read_state_cdr(state_cdr(bad, 5, frame, fields=POINT_FIELDS), POINT_FIELDS)
     with pytest.raises(ValueError) as general_err:
         cloud_to_points(mc.points_to_cloud(bad, 5, frame), POINT_FIELDS)
     assert str(fast_err.value) == str(general_err.value)

@@ -31,7 +31,6 @@ from der_ros.contract.cdr import cdr_string as _string
 from der_ros.contract.cdr import pad as _pad
 from der_ros.contract.cdr import stamp_parts
 from der_ros.contract.topics import applied_action_frame
-from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = ["clock_cdr", "command_cdr", "reward_cdr", "state_cdr", "state_field_table", "odometry_cdr"]
 
@@ -103,7 +102,7 @@ def _state_parts(frame_id: str, fields: tuple[str, ...]) -> tuple[bytes, bytes]:
     return bytes(head.out), bytes(mid.out)
 
 
-def state_field_table(fields: tuple[str, ...] = POINT_FIELDS) -> bytes:
+def state_field_table(fields: tuple[str, ...]) -> bytes:
     """The constant bytes of a state between ``width`` and ``point_step`` (the field table, is_bigendian
     and padding), the same for every frame_id: they start 4-aligned and align to at most 4."""
     return _state_parts("", tuple(fields))[1]
@@ -112,9 +111,10 @@ def state_field_table(fields: tuple[str, ...] = POINT_FIELDS) -> bytes:
 _CLOUD_SIZES = struct.Struct("<III").pack  # point_step, row_step, len(data)
 
 
-def state_cdr(points: np.ndarray, stamp_ns: int, frame_id: str = "ego", fields: tuple[str, ...] = POINT_FIELDS) -> bytes:
+def state_cdr(points: np.ndarray, stamp_ns: int, frame_id: str = "ego", *, fields: tuple[str, ...]) -> bytes:
     """The ``state`` PointCloud2 of :func:`der_ros.nodes.msg_conversions.points_to_cloud` (FLOAT64 fields,
-    unordered, little endian, dense)."""
+    unordered, little endian, dense). ``fields`` names the columns (the bridge's
+    :data:`sumo_bridge.observation.POINT_FIELDS`): the contract does not depend on the simulator."""
     pts = np.ascontiguousarray(points, dtype="<f8")
     if pts.ndim != 2 or pts.shape[1] != len(fields):
         raise ValueError(f"points have shape {pts.shape}, expected (n, {len(fields)}) for fields {fields}")

@@ -93,7 +93,7 @@ from der_ros.nodes.queue_drain import take_queued
 from der_ros.nodes.spin import run_node
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.lockstep import CommandGate, Verdict
-from sumo_bridge.observation import field_index
+from sumo_bridge.observation import POINT_FIELDS, field_index
 
 __all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
@@ -266,7 +266,7 @@ class BridgeNode(Node):
             if self.cfg.mode == "lockstep":
                 self._timeout_timer.reset()
                 self._deadline = time.monotonic() + self.cfg.command_timeout
-        self.pub_state.publish(state_cdr(info["points"], stamp))
+        self.pub_state.publish(state_cdr(info["points"], stamp, fields=POINT_FIELDS))
         self.pub_clock.publish(clock_cdr(stamp))
         pos = info.get("position")
         if pos is not None:
