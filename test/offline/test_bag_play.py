@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
-from test_bag_helpers import record_env_bag, write_foreign_bag, write_json_mcap, write_mistyped_bag
+from bag_helpers import record_env_bag, write_foreign_bag, write_json_mcap, write_mistyped_bag
 
 from der_ros.offline.play import play_bag
 from der_ros.bag.reader import BagReader

@@ -20,7 +20,7 @@ import yaml
 
 from der_ros.nodes.params import flat_specs
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 LAUNCH_FILES = sorted((REPO / "launch").glob("*.launch.py"))
 STANDARD = {"use_sim_time"}  # declared by rclpy itself
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from test_bag_helpers import record_env_bag
+from bag_helpers import record_env_bag
 
 from der_ros import cli
 from der_ros.offline import animation

@@ -32,7 +32,7 @@ from der_ros.experiments.suite import PAPER_METHODS, plan_runs
 from der_ros.train.config import load_experiment_config
 from der_ros.train.runner import train
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CARTPOLE = REPO / "config" / "cartpole.yaml"
 
 

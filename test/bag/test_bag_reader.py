@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from test_bag_helpers import TS, msg_cmd, msg_reward, write_foreign_bag
+from bag_helpers import TS, msg_cmd, msg_reward, write_foreign_bag
 
 from der_ros.bag.reader import BagError, BagReader, DamagedChunkWarning, TruncatedBagWarning
 from der_ros.bag.writer import BagWriter
@@ -355,9 +355,9 @@ def test_bag_of_a_killed_writer_process(tmp_path: Path) -> None:
     bag = tmp_path / "killed"
     script = f"""
 import sys, time
-sys.path.insert(0, {str(Path(__file__).parent)!r})
+sys.path.insert(0, {str(Path(__file__).parents[1])!r})
 from der_ros.bag.writer import BagWriter
-from test_bag_helpers import msg_reward
+from bag_helpers import msg_reward
 w = BagWriter({str(bag)!r}, flush_every_messages=50)
 w.add_topic("/reward", "geometry_msgs/msg/Vector3Stamped")
 i = 0

@@ -20,7 +20,7 @@ from der_ros.experiments.stats import (
 )
 from der_ros.experiments.suite import PAPER_METHODS, methods_by_name, plan_runs
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_bootstrap_ci_on_known_data() -> None:

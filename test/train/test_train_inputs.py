@@ -21,7 +21,7 @@ from der_ros.agent.dqn import DQNAgent, read_checkpoint
 from der_ros.configuration import ConfigError, field_specs, from_dict
 from sumo_bridge.scenario import ScenarioConfig
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CARTPOLE = REPO / "config" / "cartpole.yaml"
 RING = REPO / "config" / "ring.yaml"
 

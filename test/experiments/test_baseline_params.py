@@ -10,7 +10,7 @@ from der_ros.configuration import ConfigError
 from der_ros.experiments.baselines import gap_params_tuned, load_gap_params
 from der_ros.experiments.table3 import write_table3
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_tuned_flag_defaults_to_true_and_is_not_a_threshold(tmp_path: Path) -> None:

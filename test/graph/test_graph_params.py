@@ -12,7 +12,7 @@ import yaml
 from der_ros.configuration import ConfigError, from_dict, unflatten_names
 from der_ros.nodes.params import flat_specs
 
-PARAMS = Path(__file__).resolve().parents[1] / "config" / "graph.params.yaml"
+PARAMS = Path(__file__).resolve().parents[2] / "config" / "graph.params.yaml"
 #: node name in the YAML -> module defining parameter_sections()
 NODES = {
     "bridge_node": "der_ros.nodes.bridge_node",

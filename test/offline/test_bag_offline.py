@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_bag_helpers import record_env_bag
+from bag_helpers import record_env_bag
 
 from der_ros.agent.config import DQNConfig
 from der_ros.offline.export import build_transitions

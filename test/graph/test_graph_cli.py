@@ -19,7 +19,7 @@ from rosbags.rosbag2 import Reader
 
 from der_ros.bag.writer import FINALIZED_KEY, jazzy_typestore, read_episode_summary
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TS = jazzy_typestore()
 
 

@@ -14,7 +14,7 @@ from ros_harness import ros_domain, ros_graph  # noqa: F401 - fixtures
 from der_ros.configuration import ConfigError
 from der_ros.nodes.params import build_graph_params, load_params_file
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PARAMS = REPO / "config" / "graph.params.yaml"
 
 

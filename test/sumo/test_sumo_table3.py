@@ -14,7 +14,7 @@ from der_ros.experiments.table3 import PAPER_TABLE3, score_run, write_table3
 from der_ros.train.config import load_experiment_config
 from der_ros.train.runner import train
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> None:

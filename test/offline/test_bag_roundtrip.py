@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_bag_helpers import GraphBagWriter, record_env_bag, write_foreign_bag
+from bag_helpers import GraphBagWriter, record_env_bag, write_foreign_bag
 
 from der_ros.offline.episodes import iter_steps, resolve_topics, scan_bag
 from der_ros.offline.export import build_transitions, load_transitions, save_transitions

@@ -22,7 +22,7 @@ from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, ObservationConfig, encode_observation
 
 TS = jazzy_typestore()
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def wire(msg):

@@ -25,7 +25,7 @@ from der_ros.train.evaluation import (
 )
 from der_ros.train.runner import train
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CARTPOLE = ROOT / "config" / "cartpole.yaml"
 
 

@@ -26,7 +26,7 @@ from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env
 from der_ros.train.runner import train
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CARTPOLE = REPO / "config" / "cartpole.yaml"
 
 

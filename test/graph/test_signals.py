@@ -23,7 +23,7 @@ from der_ros.agent.dqn import DQNAgent
 from der_ros.bag.writer import FINALIZED_KEY
 from der_ros.graph.supervisor import ros_environment
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CARTPOLE = REPO / "config" / "cartpole.yaml"
 
 

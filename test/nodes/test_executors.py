@@ -12,7 +12,7 @@ from ros_harness import ros_domain  # noqa: F401 (fixture)
 from der_ros.configuration import ConfigError
 from der_ros.nodes.spin import make_executor
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_make_executor_kinds_and_override(monkeypatch: pytest.MonkeyPatch) -> None:
