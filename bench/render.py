@@ -1,4 +1,4 @@
-"""Benchmark: ``der replay render`` of a 40-step episode against the episode's own simulated time.
+"""Benchmark: ``der bag render`` of a 40-step episode against the episode's own simulated time.
 
 A person watching an episode should not wait longer than it lasted. For the ring and the urban
 network, records one 40-decision episode (20 simulated seconds; keep lane, one change left at

@@ -66,7 +66,7 @@ METRICS = "agent/metrics"
 BRIDGE_DIAGNOSTICS = "bridge/diagnostics"
 SCENE_VEHICLES = "scene/vehicles"
 SCENE_ROAD = "scene/road"
-#: the topics a viewer (RViz, Foxglove, ``der replay render``) draws the scene from
+#: the topics a viewer (RViz, Foxglove, ``der bag render``) draws the scene from
 SCENE_TOPICS = (SCENE_VEHICLES, SCENE_ROAD)
 
 # -- DiagnosticStatus names and episode events -----------------------------------------------------
@@ -243,7 +243,7 @@ def merged_qos(profiles: Sequence[dict[str, Any]], default_depth: int = 10) -> Q
 
 
 def qos_text(profiles: Sequence[dict[str, Any]]) -> str:
-    """Offered QoS of a recorded topic for tables (``der replay info``), e.g. ``RELIABLE, KEEP_LAST 50``."""
+    """Offered QoS of a recorded topic for tables (``der bag info``), e.g. ``RELIABLE, KEEP_LAST 50``."""
     if not profiles:
         return "-"
     p = profiles[0]
@@ -379,7 +379,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         msgtype="visualization_msgs/msg/MarkerArray",
         qos=QosSpec(depth=10),
         publisher="bridge_node (markers:=true)",
-        subscribers=("recorder_node", "RViz / Foxglove", "der replay render"),
+        subscribers=("recorder_node", "RViz / Foxglove", "der bag render"),
         rate="1 per decision step, after state",
         meaning="every vehicle as a CUBE in the map frame (ns 'vehicles', id stable while the vehicle exists, "
         "text = SUMO id, pose = its centre, colour = its role: ego or one of the neighbour slots or traffic); "
@@ -391,7 +391,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         msgtype="visualization_msgs/msg/MarkerArray",
         qos=QosSpec(durability="transient_local", depth=1),
         publisher="bridge_node (markers:=true)",
-        subscribers=("recorder_node", "RViz / Foxglove", "der replay render"),
+        subscribers=("recorder_node", "RViz / Foxglove", "der bag render"),
         rate="once at start (latched: late subscribers get it)",
         meaning="every lane of the SUMO network as a LINE_STRIP along its centre line (ns 'lanes', "
         "scale.x = lane width, text = SUMO lane id), map frame",

@@ -8,7 +8,7 @@ decisions and return (with ``commit_on_success`` switched off, so the film goes 
 instead of stopping at the lane change). It runs in a spawned process (one libsumo simulation per
 process, and torch stays out of ``der graph``'s own process), which records the episode as the graph would
 (:func:`der_ros.offline.episode_recording.record_episode`: ``<run dir>/greedy_episode/``, a small bag)
-and renders it with ``der replay render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
+and renders it with ``der bag render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
 A failure here is logged and the run's summary goes on without the GIF.
 """
 

@@ -1,11 +1,11 @@
-"""``der replay``: inspect, plot, export, train from and play recorded MCAP bags.
+"""``der bag`` (old spelling: ``der replay``): inspect, plot, export, train from, render and play recorded MCAP bags.
 
-    der replay info BAG [--json]
-    der replay plot BAG [BAG...] [--out DIR] [--label NAME ...]
-    der replay export BAG --to transitions.npz|transitions.parquet
-    der replay train BAG [BAG...] --replay der --lam 0.9 [--steps N] [--eval-episodes K]
-    der replay play BAG [--rate R] [--loop] [--topics T ...]
-    der replay render BAG [--episode N | --episodes A-B] --to out.gif|out.mp4
+    der bag info BAG [--json]
+    der bag plot BAG [BAG...] [--out DIR] [--label NAME ...]
+    der bag export BAG --to transitions.npz|transitions.parquet
+    der bag train BAG [BAG...] --replay der --lam 0.9 [--steps N] [--eval-episodes K]
+    der bag play BAG [--rate R] [--loop] [--topics T ...]
+    der bag render BAG [--episode N | --episodes A-B] --to out.gif|out.mp4
 
 Everything but ``play`` is ROS-free (``rosbags`` typestore for decoding). Read errors
 (:class:`~der_ros.bag.reader.BagError`: corrupted file, missing topics) are reported as one
@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file recorded with the scene markers on")
     which = p.add_mutually_exclusive_group()
     which.add_argument("--episode", type=int, default=None, metavar="N",
-                       help="the episode numbered N (the 'episode' column of der replay info; default: the last finished)")
+                       help="the episode numbered N (the 'episode' column of der bag info; default: the last finished)")
     which.add_argument("--episodes", type=_episode_span, default=None, metavar="A-B",
                        help="episodes A to B (inclusive) one after the other")
     p.add_argument("--to", type=Path, required=True, help="output file: .gif (Pillow) or .mp4 (needs imageio-ffmpeg)")
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             return handlers[args.replay_command](args)
         except BagError as exc:
-            print(f"der replay {args.replay_command}: error: {exc}", file=sys.stderr)
+            print(f"der bag {args.replay_command}: error: {exc}", file=sys.stderr)
             return 1
 
 
@@ -120,7 +120,7 @@ def _finite(x: float) -> float | None:
 
 
 def bag_info(path: Path, namespace: str | None = None) -> dict[str, Any]:
-    """The ``der replay info --json`` document (schema version :data:`INFO_SCHEMA_VERSION`)."""
+    """The ``der bag info --json`` document (schema version :data:`INFO_SCHEMA_VERSION`)."""
     reader = BagReader(path)
     scan = scan_bag(reader, namespace)
     conns = reader.topics()
@@ -239,7 +239,7 @@ def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:
 
 def _run_plot(args: argparse.Namespace) -> int:
     if args.label and len(args.label) != len(args.bags):
-        print(f"der replay plot: {len(args.label)} --label for {len(args.bags)} bags", file=sys.stderr)
+        print(f"der bag plot: {len(args.label)} --label for {len(args.bags)} bags", file=sys.stderr)
         return 2
     files = plot_bags(args.bags, args.out, labels=args.label, window=args.window, namespace=args.namespace)
     for f in files:
@@ -249,7 +249,7 @@ def _run_plot(args: argparse.Namespace) -> int:
 
 def _run_export(args: argparse.Namespace) -> int:
     if args.to.suffix not in (".npz", ".parquet"):
-        print(f"der replay export: --to {args.to}: expected a .npz or .parquet file name", file=sys.stderr)
+        print(f"der bag export: --to {args.to}: expected a .npz or .parquet file name", file=sys.stderr)
         return 2
     obs_cfg = None
     if args.obs_config is not None:
@@ -280,7 +280,7 @@ def _run_render(args: argparse.Namespace) -> int:
     try:
         opts = RenderOptions(width=args.size, height=args.size, fps=args.fps, window=args.window)
     except ValueError as exc:
-        print(f"der replay render: {exc}", file=sys.stderr)
+        print(f"der bag render: {exc}", file=sys.stderr)
         return 2
     result = render_bag(args.bag, args.to, args.episode, args.episodes, opts, args.namespace)
     eps = result.episodes
@@ -293,6 +293,6 @@ def _run_play(args: argparse.Namespace) -> int:
     try:
         from der_ros.offline.play import run_play  # lazy: rclpy, which only play needs
     except ImportError as exc:  # the reading tools work without ROS; play does not
-        print(f"der replay play needs rclpy (ROS 2 Jazzy): {exc}", file=sys.stderr)
+        print(f"der bag play needs rclpy (ROS 2 Jazzy): {exc}", file=sys.stderr)
         return 1
     return run_play(args)

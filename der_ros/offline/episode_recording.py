@@ -6,7 +6,7 @@ module runs it in a plain :class:`~sumo_bridge.lane_change_env.LaneChangeEnv` (n
 and writes what the bridge and agent would have published: the road once, then per step
 ``reward`` (naming the applied action) and ``state`` stamped t_k = k x step, the scene markers,
 the command answering the state, and the ``episode`` start/end events
-(:mod:`der_ros.contract`). ``der replay info/render/export`` read the result like any graph bag.
+(:mod:`der_ros.contract`). ``der bag info/render/export`` read the result like any graph bag.
 """
 
 from __future__ import annotations

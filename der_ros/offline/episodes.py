@@ -230,7 +230,7 @@ class EpisodeSummary:
 
 @dataclass
 class BagScan:
-    """Everything ``der replay info/plot`` need, from one streamed pass over a bag."""
+    """Everything ``der bag info/plot`` need, from one streamed pass over a bag."""
 
     name: str
     roles: dict[str, str]

@@ -1,4 +1,4 @@
-"""``der replay play``: publish a bag's messages back into a ROS 2 graph, like ``ros2 bag play``.
+"""``der bag play``: publish a bag's messages back into a ROS 2 graph, like ``ros2 bag play``.
 
 * Raw CDR bytes are published as recorded (rclpy's ``Publisher.publish`` accepts ``bytes``
   and hands them to ``publish_raw``), so nothing is deserialised on the way.
@@ -12,7 +12,7 @@
   with another type (another graph's ``/clock`` as ``std_msgs/String``), or a bag with nothing
   publishable (a JSON MCAP, types not installed, ``--topics`` not in the bag).
 
-The one module of the bag package that needs rclpy (imported at the top: ``der replay`` loads
+The one module of the bag package that needs rclpy (imported at the top: ``der bag`` loads
 it only when ``play`` runs).
 """
 
@@ -126,7 +126,7 @@ def _publish_clock(pub: Any, msg: Message) -> None:
 
 def run_play(args: argparse.Namespace) -> int:
     if not args.rate > 0:
-        print(f"der replay play: --rate {args.rate}: expected a number > 0")
+        print(f"der bag play: --rate {args.rate}: expected a number > 0")
         return 2
     reader = BagReader(args.bag)
     rclpy.init()

@@ -1,4 +1,4 @@
-"""``der replay render``: a top-down animation of recorded episodes, drawn from a bag's scene markers.
+"""``der bag render``: a top-down animation of recorded episodes, drawn from a bag's scene markers.
 
 Each recorded decision step becomes one frame (:mod:`der_ros.offline.scene_frames`): the road (every
 lane a ribbon as wide as the lane, a thin gap between neighbours as the lane marking), every

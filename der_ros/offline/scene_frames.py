@@ -1,11 +1,11 @@
 """The recorded scene of chosen episodes, step by step, from a der_ros bag (ROS-free).
 
-What ``der replay render`` draws: the road (``scene/road``), and for every decision step of the
+What ``der bag render`` draws: the road (``scene/road``), and for every decision step of the
 chosen episodes the vehicles as they were (``scene/vehicles``, markers applied in order: ADD
 moves or adds, DELETE removes, DELETEALL clears), joined by the step key t_k with the reward of
 arriving there and the action taken from there (``reward`` and ``lane_change_cmd``, parsed by
 :mod:`der_ros.contract`). Episodes come from :func:`der_ros.offline.episodes.scan_bag`, so they are
-numbered as ``der replay info`` shows them.
+numbered as ``der bag info`` shows them.
 
 The bridge puts every vehicle into every ``scene/vehicles`` message (plus a DELETE for each one
 gone), so the scene of a step needs no message before its episode: messages stamped before the
@@ -67,7 +67,7 @@ class Frame:
 
 @dataclass
 class EpisodeFrames:
-    """One episode's frames, with the numbers ``der replay info`` shows for it."""
+    """One episode's frames, with the numbers ``der bag info`` shows for it."""
 
     summary: EpisodeSummary
     frames: list[Frame] = field(default_factory=list)

@@ -1,4 +1,4 @@
-"""``der replay train``: train a DQN from recorded transitions only, then evaluate it in SUMO.
+"""``der bag train``: train a DQN from recorded transitions only, then evaluate it in SUMO.
 
 Offline means gradient steps on a replay buffer filled once from the bags' transitions
 (:func:`der_ros.offline.export.build_transitions`, the exact observations the online agent saw);
@@ -122,7 +122,7 @@ class OfflineResult:
 
 
 def make_agent(obs_dim: int, n_actions: int, dqn_cfg: Any, replay_cfg: Any, seed: int) -> Any:
-    from der_ros.agent.dqn import DQNAgent  # lazy: torch (``der replay info`` must start fast)
+    from der_ros.agent.dqn import DQNAgent  # lazy: torch (``der bag info`` must start fast)
 
     return DQNAgent((obs_dim,), np.float32, n_actions, dqn_cfg, replay_cfg, seed=seed, device="cpu")
 

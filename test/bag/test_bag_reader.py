@@ -220,7 +220,7 @@ def test_a_damaged_chunk_is_skipped_and_the_rest_is_read(tmp_path: Path, compres
     assert f"{len(by_chunk[(start, end)])} messages lost" in warned[0]
     (damage,) = reader.damaged
     assert (damage.start, damage.end, damage.messages_lost) == (start, end, len(by_chunk[(start, end)]))
-    # a second pass (der replay info scans, then exports) reports the same chunk once
+    # a second pass (der bag info scans, then exports) reports the same chunk once
     assert [(m.topic, m.log_time, bytes(m.data)) for m in reader.messages()] == intact
     assert len(reader.damaged) == 1
 

@@ -7,7 +7,7 @@ applied action. Here the timeout is 2 ms and the test freezes the agent's proces
 whatever the machine's speed: the agent answers the states that queued up meanwhile after the
 bridge has applied its default. (A checkpoint every 10 steps also pauses the agent, but on a
 fast disk such a save can take less than the timeout: CI once saw no overridden action.)
-``der replay export`` of the recorded bag must give exactly the transitions in the agent's
+``der bag export`` of the recorded bag must give exactly the transitions in the agent's
 replay: same observations (bit for bit), the applied actions, rewards, flags, in the same order.
 """
 

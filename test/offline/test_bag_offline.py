@@ -57,7 +57,7 @@ def test_offline_training_updates_the_network_and_der_promotes(bag: Path) -> Non
 
 
 def test_cli_train_reports_offline_and_online_numbers(bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["replay", "train", str(bag), "--replay", "der", "--lam", "0.9", "--steps", "30", "--batch-size", "8",
+    argv = ["bag", "train", str(bag), "--replay", "der", "--lam", "0.9", "--steps", "30", "--batch-size", "8",
             "--eval-episodes", "2", "--max-episode-steps", "10", "--json"]
     assert der_main(argv) == 0
     doc = json.loads(capsys.readouterr().out)

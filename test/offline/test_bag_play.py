@@ -1,4 +1,4 @@
-"""``der replay play``: every message republished, per-topic order kept, recorded timing within tolerance.
+"""``der bag play``: every message republished, per-topic order kept, recorded timing within tolerance.
 
 The ROS test runs the player as a separate process (``python -m der_ros.cli replay play``) in
 the test's own ROS_DOMAIN_ID with LOCALHOST discovery and receives with raw (CDR bytes)
@@ -123,7 +123,7 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
     rate = 2.0 if kind == "graph" else 1.0
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_graph.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
-    argv = [sys.executable, "-m", "der_ros.cli", "replay", "play", str(bag), "--rate", str(rate),
+    argv = [sys.executable, "-m", "der_ros.cli", "bag", "play", str(bag), "--rate", str(rate),
             "--wait-subscribers", "20", "--delay", "0.5"]
     proc = NodeProcess("player", argv, env, tmp_path / "player.log")
     ros_graph.procs.append(proc)
@@ -189,9 +189,9 @@ def test_der_replay_play_of_a_bag_it_cannot_play_exits_non_zero(ros_domain: int,
     bag = tmp_path / ("bag" if kind == "mistyped" else "telemetry.mcap")
     write_mistyped_bag(bag) if kind == "mistyped" else write_json_mcap(bag)
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros_domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    done = subprocess.run([sys.executable, "-m", "der_ros.cli", "replay", "play", str(bag), "--rate", "100"], env=env,
+    done = subprocess.run([sys.executable, "-m", "der_ros.cli", "bag", "play", str(bag), "--rate", "100"], env=env,
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 1, done.stdout + done.stderr
     want = "where rosgraph_msgs/msg/Clock was expected" if kind == "mistyped" else "json-encoded, not ROS 2 CDR"
-    assert f"der replay play: error: {bag}" in done.stderr and want in done.stderr, done.stderr
+    assert f"der bag play: error: {bag}" in done.stderr and want in done.stderr, done.stderr
     assert "published" not in done.stdout + done.stderr

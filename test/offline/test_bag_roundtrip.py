@@ -163,7 +163,7 @@ def test_export_stores_the_applied_action_not_the_command(tmp_path: Path) -> Non
 
 def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pytest.CaptureFixture[str]) -> None:
     path, truth = env_bag
-    assert der_main(["replay", "info", str(path), "--json"]) == 0
+    assert der_main(["bag", "info", str(path), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     schema = {
         "schema_version": int, "bag": str, "name": str, "files": list, "truncated": bool, "metadata_yaml": bool,
@@ -184,20 +184,32 @@ def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pyt
                                    "mean_return"}
     assert doc["metrics"] == ["losses/td_loss", "replay/h2_fraction", "replay/h2_weight_mean"]
     assert doc["roles"]["state"] == "/state"
-    assert der_main(["replay", "info", str(path)]) == 0
+    assert der_main(["bag", "info", str(path)]) == 0
     text = capsys.readouterr().out
     assert "/state" in text and "sensor_msgs/msg/PointCloud2" in text and "RELIABLE, KEEP_LAST 50" in text
     assert f"{len(truth.episodes)} finished episodes" in text
 
 
+def test_der_replay_is_the_old_spelling_of_der_bag(env_bag: tuple[Path, object],
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """``der bag`` was ``der replay`` before issue 42; scripts that spell it the old way still work."""
+    path, _truth = env_bag
+    assert der_main(["bag", "info", str(path), "--json"]) == 0
+    new = json.loads(capsys.readouterr().out)
+    assert der_main(["replay", "info", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == new
+    assert der_main(["replay", "export", str(path), "--to", "t.csv"]) == 2
+    assert "der bag export: --to t.csv" in capsys.readouterr().err
+
+
 def test_cli_export_and_plot(env_bag: tuple[Path, object], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path, truth = env_bag
     out = tmp_path / "t.npz"
-    assert der_main(["replay", "export", str(path), "--to", str(out)]) == 0
+    assert der_main(["bag", "export", str(path), "--to", str(out)]) == 0
     assert np.array_equal(np.load(out)["actions"], truth.actions)
-    assert der_main(["replay", "export", str(path), "--to", str(tmp_path / "t.csv")]) == 2
+    assert der_main(["bag", "export", str(path), "--to", str(tmp_path / "t.csv")]) == 2
     plots = tmp_path / "plots"
-    assert der_main(["replay", "plot", str(path), str(path), "--label", "a", "--label", "b", "--out", str(plots)]) == 0
+    assert der_main(["bag", "plot", str(path), str(path), "--label", "a", "--label", "b", "--out", str(plots)]) == 0
     names = {p.name for p in plots.iterdir()}
     assert {"returns.png", "outcomes.png", "speed.png", "der_replay.png", "metrics.png", "topic_rates.png"} <= names
     for p in plots.iterdir():
@@ -213,7 +225,7 @@ def test_foreign_bag_info_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture
     assert info["duration_s"] == pytest.approx((59 * 50_000_000 + 1000) / 1e9)
     files = plot_bags([tmp_path / "foreign"], tmp_path / "plots")
     assert [f.name for f in files] == ["topic_rates.png"]
-    assert der_main(["replay", "info", str(tmp_path / "foreign")]) == 0
+    assert der_main(["bag", "info", str(tmp_path / "foreign")]) == 0
     assert "no episodes" in capsys.readouterr().out
     with pytest.raises(BagError, match="no state, reward topic"):
         build_transitions(BagReader(tmp_path / "foreign"))
@@ -228,7 +240,7 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     cut.mkdir()
     (cut / src.name).write_bytes(raw[: len(raw) * 2 // 3])
     shutil.copy(path / "metadata.yaml", cut / "metadata.yaml")
-    assert der_main(["replay", "info", str(cut), "--json"]) == 0
+    assert der_main(["bag", "info", str(cut), "--json"]) == 0
     captured = capsys.readouterr()
     doc = json.loads(captured.out)
     assert doc["truncated"] and doc["metadata_stale"]
@@ -240,7 +252,7 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     flipped = bytearray(raw)
     flipped[len(raw) // 3] ^= 0x5A
     (bad / src.name).write_bytes(bytes(flipped))
-    assert der_main(["replay", "info", str(bad), "--json"]) == 0
+    assert der_main(["bag", "info", str(bad), "--json"]) == 0
     captured = capsys.readouterr()
     doc = json.loads(captured.out)
     (chunk,) = doc["skipped"]["ranges"]
@@ -248,7 +260,7 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     assert chunk["start"] < len(raw) // 3 < chunk["end"] and doc["skipped"]["bytes"] == chunk["end"] - chunk["start"]
     assert doc["message_count"] == truth.n_messages - chunk["messages_lost"]
     assert captured.err.count("skipped the damaged chunk") == 1 and f"bytes {chunk['start']}-{chunk['end']}" in captured.err
-    assert der_main(["replay", "info", str(bad)]) == 0
+    assert der_main(["bag", "info", str(bad)]) == 0
     assert "DAMAGED:   1 chunk(s) skipped" in capsys.readouterr().out
     # damage the framing of a bag without chunk index (a killed recorder's): a clean one-line error
     worse = tmp_path / "worse"
@@ -256,7 +268,7 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     cut_raw = bytearray(raw[: len(raw) * 2 // 3])
     cut_raw[8] ^= 0xFF  # the header record's opcode
     (worse / src.name).write_bytes(bytes(cut_raw))
-    assert der_main(["replay", "info", str(worse)]) == 1
+    assert der_main(["bag", "info", str(worse)]) == 1
     err = capsys.readouterr().err
     assert "error:" in err and str(worse / src.name) in err and "byte offset" in err
     assert "Traceback" not in err

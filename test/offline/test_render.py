@@ -1,4 +1,4 @@
-"""``der replay render``: one frame per recorded step, the ego drawn where it was, ring and urban, GIF and
+"""``der bag render``: one frame per recorded step, the ego drawn where it was, ring and urban, GIF and
 MP4, and clear errors for a bag without markers or a missing encoder."""
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def gif_frame(path: Path, index: int) -> Image.Image:
 def test_one_frame_per_step_with_the_ego_drawn_where_it_was(tmp_path: Path, network: str) -> None:
     bag, gif = tmp_path / "bag", tmp_path / "episode.gif"
     steps = record(bag, network, 8)
-    assert cli.main(["replay", "render", str(bag), "--episode", "0", "--to", str(gif)]) == 0
+    assert cli.main(["bag", "render", str(bag), "--episode", "0", "--to", str(gif)]) == 0
     with Image.open(gif) as im:
         assert im.n_frames == steps + 1  # the episode's first state and one per decision
         assert im.size == (640, 64 + 640)
@@ -125,7 +125,7 @@ def test_a_bag_without_markers_is_a_clear_error(tmp_path: Path, capsys: pytest.C
     record_env_bag(bag, episodes=1, max_episode_steps=3)  # state / reward / command / episode, no scene
     with pytest.raises(BagError, match=r"no scene/vehicles markers .*markers:=false .*record_scene:=false"):
         render_bag(bag, tmp_path / "x.gif")
-    assert cli.main(["replay", "render", str(bag), "--to", str(tmp_path / "x.gif")]) == 1
+    assert cli.main(["bag", "render", str(bag), "--to", str(tmp_path / "x.gif")]) == 1
     assert "no scene/vehicles markers in this bag" in capsys.readouterr().err
     assert not (tmp_path / "x.gif").exists()
 
@@ -161,7 +161,7 @@ def test_mp4_without_the_encoder_package_is_one_line_that_suggests_gif(tmp_path:
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import imageio_ffmpeg -> ImportError
     with pytest.raises(animation.EncoderUnavailable, match=r"imageio-ffmpeg .*not installed.*--to out\.gif"):
         render_bag(bag, tmp_path / "x.mp4")
-    assert cli.main(["replay", "render", str(bag), "--to", str(tmp_path / "x.mp4")]) == 1
+    assert cli.main(["bag", "render", str(bag), "--to", str(tmp_path / "x.mp4")]) == 1
     err = capsys.readouterr().err
     assert "cannot write MP4" in err and "--to out.gif" in err and "Traceback" not in err
     assert not (tmp_path / "x.mp4").exists()
