@@ -9,7 +9,7 @@ produces, byte for byte, and what rclpy decodes into the same message (Fast CDR 
 bytes unset, so its own bytes differ there only; ``test/test_scene.py`` checks both). What a marker
 means is the contract's
 (:mod:`der_ros.contract`: namespaces, roles, colours); :func:`der_ros.contract.parse_vehicle_markers`
-reads them back from rclpy and rosbags messages alike.
+reads them back from rclpy and rosbags messages alike: meaning, parsers and encoders are this one module.
 
 Why our own encoder (measured, not assumed): building the array of 25 ring vehicles as rclpy
 messages and converting them for publishing took ~1,000-1,400 us per step, with rosbags'
@@ -23,28 +23,173 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Iterable, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
 
 from der_ros.contract.cdr import ENCAPSULATION as _ENCAPSULATION
 from der_ros.contract.cdr import NS as _NS
 from der_ros.contract.cdr import STAMP as _STAMP
 from der_ros.contract.cdr import U32 as _U32
 from der_ros.contract.cdr import cdr_string as _string
-from der_ros.contract.cdr import stamp_parts
-from der_ros.contract.topics import (
-    LANE_COLOUR,
-    LANE_NS,
-    MARKER_ADD,
-    MARKER_CUBE,
-    MARKER_DELETE,
-    MARKER_LINE_STRIP,
-    ROLE_COLOURS,
-    VEHICLE_HEIGHT,
-    VEHICLE_NS,
-    LaneLine,
-    VehicleMarker,
-)
+from der_ros.contract.cdr import header_ns, stamp_parts
 
-__all__ = ["vehicle_markers_cdr", "road_markers_cdr", "first_stamp_ns"]
+__all__ = [
+    "MARKER_CUBE", "MARKER_LINE_STRIP", "MARKER_ADD", "MARKER_DELETE", "MARKER_DELETEALL", "VEHICLE_NS", "LANE_NS",
+    "VEHICLE_HEIGHT", "SCENE_ROLES", "EGO_ROLE", "TRAFFIC_ROLE", "ROLE_COLOURS", "LANE_COLOUR", "VehicleMarker",
+    "LaneLine", "SceneUpdate", "yaw_quaternion", "role_of_colour", "parse_vehicle_markers", "parse_road_markers",
+    "vehicle_markers_cdr", "road_markers_cdr", "first_stamp_ns",
+]
+
+# -- what the markers mean (``scene/vehicles``, ``scene/road``) -----------------------------------
+# visualization_msgs/Marker constants (the message's own values; spelled here so ROS-free code
+# can build and read markers).
+# visualization_msgs/Marker constants (the message's own values; spelled here so ROS-free code
+# can build and read markers).
+MARKER_CUBE, MARKER_LINE_STRIP = 1, 4
+
+
+MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL = 0, 2, 3
+
+
+#: marker namespace of the vehicles on ``scene/vehicles`` and of the lanes on ``scene/road``
+VEHICLE_NS, LANE_NS = "vehicles", "lanes"
+
+
+#: height (z size) of a vehicle's cube, m; its centre sits at half this height
+VEHICLE_HEIGHT = 1.5
+
+
+#: the learning vehicle
+EGO_ROLE = "ego"
+
+
+#: a vehicle that is neither the ego nor in a neighbour slot
+TRAFFIC_ROLE = "traffic"
+
+
+#: the role of a vehicle in the scene: the ego, one of the observation's neighbour slots
+#: (``sumo_bridge.observation.SLOT_NAMES``, in order), or other traffic
+SCENE_ROLES: tuple[str, ...] = (EGO_ROLE, "leader", "follower", "left_leader", "left_follower", "right_leader",
+                                "right_follower", TRAFFIC_ROLE)  # fmt: skip
+
+
+#: RGBA of each role: the ego red, the slots of the current lane orange/yellow, of the left lane
+#: greens, of the right lane blues (leaders darker than followers), traffic grey. A viewer tells
+#: the roles apart by colour alone, and :func:`role_of_colour` reads a role back from a marker.
+ROLE_COLOURS: dict[str, tuple[float, float, float, float]] = {
+    EGO_ROLE: (0.85, 0.10, 0.10, 1.0),
+    "leader": (1.0, 0.55, 0.0, 1.0),
+    "follower": (0.95, 0.80, 0.15, 1.0),
+    "left_leader": (0.05, 0.55, 0.20, 1.0),
+    "left_follower": (0.45, 0.80, 0.40, 1.0),
+    "right_leader": (0.10, 0.35, 0.85, 1.0),
+    "right_follower": (0.45, 0.70, 1.0, 1.0),
+    TRAFFIC_ROLE: (0.62, 0.62, 0.62, 1.0),
+}
+
+
+#: RGBA of the lanes on ``scene/road``
+LANE_COLOUR = (0.30, 0.30, 0.33, 1.0)
+
+
+_COLOUR_TOLERANCE = 2e-3  # ColorRGBA is float32
+
+
+class VehicleMarker(NamedTuple):
+    """One vehicle of ``scene/vehicles``: the cube's centre and heading in the map frame."""
+
+    marker_id: int
+    vehicle_id: str
+    role: str
+    x: float
+    y: float
+    #: heading, radians counter-clockwise from the map's x axis (REP 103)
+    yaw: float
+    length: float
+    width: float
+
+
+class LaneLine(NamedTuple):
+    """One lane of ``scene/road``: its centre line (``(n, 2)`` float64, m) and width (m)."""
+
+    lane_id: str
+    points: np.ndarray
+    width: float
+
+
+class SceneUpdate(NamedTuple):
+    """What one ``scene/vehicles`` message changes: vehicles added or moved, marker ids deleted, and
+    whether everything known before was cleared first (a DELETEALL clears what came before it,
+    markers being applied in array order as RViz applies them)."""
+
+    stamp_ns: int
+    vehicles: list[VehicleMarker]
+    deleted: list[int]
+    delete_all: bool
+
+
+def yaw_quaternion(yaw: float) -> tuple[float, float]:
+    """(z, w) of the quaternion of a rotation by ``yaw`` about the z axis (x = y = 0)."""
+    return math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def role_of_colour(r: float, g: float, b: float) -> str:
+    """The role whose colour (:data:`ROLE_COLOURS`) this is; ValueError naming the colour if none is."""
+    for role, (cr, cg, cb, _a) in ROLE_COLOURS.items():
+        if abs(r - cr) <= _COLOUR_TOLERANCE and abs(g - cg) <= _COLOUR_TOLERANCE and abs(b - cb) <= _COLOUR_TOLERANCE:
+            return role
+    raise ValueError(f"vehicle marker colour = ({r:.3f}, {g:.3f}, {b:.3f}), not the colour of any role in {SCENE_ROLES}")
+
+
+def parse_vehicle_markers(msg: Any) -> SceneUpdate:
+    """A ``scene/vehicles`` MarkerArray -> :class:`SceneUpdate` (markers of other namespaces are
+    ignored, so a viewer may add its own); ValueError naming the marker and field if malformed."""
+    vehicles: list[VehicleMarker] = []
+    deleted: list[int] = []
+    delete_all = False
+    stamp = 0
+    for i, m in enumerate(msg.markers):
+        if i == 0:
+            stamp = header_ns(m)
+        if m.action == MARKER_DELETEALL:
+            delete_all, vehicles, deleted = True, [], []
+            continue
+        if m.ns != VEHICLE_NS:
+            continue
+        if m.action == MARKER_DELETE:
+            deleted.append(int(m.id))
+            continue
+        if m.action != MARKER_ADD:
+            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): action = {m.action}, expected "
+                             f"ADD ({MARKER_ADD}), DELETE ({MARKER_DELETE}) or DELETEALL ({MARKER_DELETEALL})")
+        if m.type != MARKER_CUBE:
+            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): type = {m.type}, expected CUBE ({MARKER_CUBE})")
+        q = m.pose.orientation
+        c = m.color
+        vehicles.append(VehicleMarker(
+            int(m.id), str(m.text), role_of_colour(c.r, c.g, c.b), float(m.pose.position.x), float(m.pose.position.y),
+            2.0 * math.atan2(q.z, q.w), float(m.scale.x), float(m.scale.y),
+        ))  # fmt: skip
+    return SceneUpdate(stamp, vehicles, deleted, delete_all)
+
+
+def parse_road_markers(msg: Any) -> list[LaneLine]:
+    """The lanes of a ``scene/road`` MarkerArray (LINE_STRIPs of namespace ``lanes``), in message order."""
+    lanes = []
+    for i, m in enumerate(msg.markers):
+        if m.ns != LANE_NS or m.action != MARKER_ADD:
+            continue
+        if m.type != MARKER_LINE_STRIP or len(m.points) < 2:
+            raise ValueError(f"scene/road marker {i} ({m.text!r}): type {m.type} with {len(m.points)} points, "
+                             f"expected a LINE_STRIP ({MARKER_LINE_STRIP}) of at least 2 points")
+        pts = np.array([(p.x, p.y) for p in m.points], dtype=np.float64)
+        lanes.append(LaneLine(str(m.text), pts, float(m.scale.x)))
+    return lanes
+
+
+# -- as CDR bytes ----------------------------------------------------------------------------------
+
 
 _ID_TYPE_ACTION = struct.Struct("<iii").pack
 _POSE_SCALE = struct.Struct("<10d").pack  # position xyz, orientation xyzw, scale xyz

@@ -1,12 +1,12 @@
-"""The ROS 2 graph contract in one place: topics, QoS, status names, prefixes and message parsers.
+"""The ROS 2 graph's topics: names, QoS, status names and the topic table (who publishes what, with which QoS).
 
 Every module that touches the graph -- the bridge, agent and recorder nodes, the ``der graph``
-monitor, the bag writer, reader tools, export and player -- takes topic names, QoS and the
-meaning of message fields from here and nowhere else. This module is ROS-free: the parsers
-read attributes only, so they accept rclpy messages (live) and rosbags messages (decoded from
-a bag) alike, and offline tools rebuild exactly what the nodes saw. The rclpy side (QoS
-profiles, message classes) is :mod:`der_ros.contract_ros`; message *builders* live with the
-nodes (:mod:`der_ros.nodes.msg_conversions`).
+monitor, the bag writer, reader tools, export and player -- takes topic names and QoS from here
+and nowhere else; what each message holds, field by field and byte by byte, is the per-message
+module of the same package (:mod:`~der_ros.contract.state`, :mod:`~der_ros.contract.reward`,
+:mod:`~der_ros.contract.command`, :mod:`~der_ros.contract.odometry`, :mod:`~der_ros.contract.events`,
+:mod:`~der_ros.contract.scene`). ROS-free; the rclpy side (QoS profiles, message classes) is
+:mod:`der_ros.contract_ros`.
 
 Why one home: when the table, the QoS and the parsers were spread over six files they drifted
 (the offline export stored the commanded action while the agent stored the applied one; two QoS
@@ -23,34 +23,24 @@ the next ``reward`` (t_{k+1}) names in ``header.frame_id`` the action the bridge
 from __future__ import annotations
 
 import logging
-import math
-import struct
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
-import numpy as np
 import yaml
+
+from der_ros.contract.reward import APPLIED_ACTION_PREFIX
 
 __all__ = [
     # topic names
     "CLOCK", "STATE", "REWARD", "ODOM", "EPISODE", "COMMAND", "METRICS", "BRIDGE_DIAGNOSTICS",
     "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS",
-    # status names, events, prefixes
+    # status names and episode events
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
-    "APPLIED_ACTION_PREFIX", "POINTFIELD_FLOAT64", "FLOAT32_MAX", "ACTION_NAMES",
     # QoS and the topic table
     "QosSpec", "TopicSpec", "TOPICS", "RELIABLE_VOLATILE", "SENSOR_DATA", "topic_spec", "topic_by_name",
     "default_record_topics", "topics_markdown", "parse_qos_profiles", "merged_qos", "qos_text",
-    # parsers
-    "Reward", "stamp_to_ns", "header_ns", "parse_reward", "reward_from_fields", "applied_action_frame", "parse_applied_action",
-    "parse_command", "cdr_command_sender", "command_action", "cloud_to_points", "points_from_buffer", "point_field_names", "odometry_pose",
-    "parse_key_values", "format_value", "episode_values", "parse_episode_events", "diagnostics_to_metrics",
-    # the scene markers (visualization_msgs/MarkerArray)
-    "MARKER_CUBE", "MARKER_LINE_STRIP", "MARKER_ADD", "MARKER_DELETE", "MARKER_DELETEALL", "VEHICLE_NS", "LANE_NS",
-    "VEHICLE_HEIGHT", "SCENE_ROLES", "EGO_ROLE", "TRAFFIC_ROLE", "ROLE_COLOURS", "LANE_COLOUR", "VehicleMarker", "LaneLine",
-    "SceneUpdate", "yaw_quaternion", "role_of_colour", "parse_vehicle_markers", "parse_road_markers",
 ]
 
 log = logging.getLogger(__name__)
@@ -83,16 +73,6 @@ EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT = "success", "collision",
 EPISODE_ENDS = (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT)
 EPISODE_EVENTS = (EPISODE_START, *EPISODE_ENDS)
 
-#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``)
-ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right")
-
-#: ``reward.header.frame_id`` = this prefix + the action the bridge applied to reach the state
-APPLIED_ACTION_PREFIX = "applied_action="
-#: ``sensor_msgs/PointField.FLOAT64``: the only datatype of the ``state`` cloud's fields
-POINTFIELD_FLOAT64 = 8
-#: observations and rewards are stored as float32: larger values (and NaN/inf) are malformed input
-FLOAT32_MAX = float(np.finfo(np.float32).max)
-_NS = 1_000_000_000
 
 # -- QoS -----------------------------------------------------------------------------------------
 #: rosbag2 writes "infinite" durations (deadline, lifespan, lease) as this pair.
@@ -438,341 +418,3 @@ def topics_markdown() -> str:
             f"| {s.rate} | {s.meaning.replace('|', '/')} | {s.units} |"
         )
     return "\n".join(lines) + "\n"
-
-
-# -- parsers (rclpy and rosbags messages alike) ---------------------------------------------------
-class Reward(NamedTuple):
-    """A parsed ``reward`` message."""
-
-    stamp_ns: int
-    reward: float
-    terminated: bool
-    truncated: bool
-    #: the action the bridge applied in the step that led here; None at an episode's first state
-    applied_action: int | None
-
-
-def stamp_to_ns(t: Any) -> int:
-    """``builtin_interfaces/Time`` -> nanoseconds (the step key of the graph)."""
-    return int(t.sec) * _NS + int(t.nanosec)
-
-
-def header_ns(msg: Any) -> int:
-    """The header stamp of a message in nanoseconds."""
-    return stamp_to_ns(msg.header.stamp)
-
-
-def applied_action_frame(action: int | None) -> str:
-    """The ``reward`` frame_id naming the applied action ("" for an episode's first state)."""
-    return "" if action is None else f"{APPLIED_ACTION_PREFIX}{int(action)}"
-
-
-def parse_applied_action(msg: Any) -> int | None:
-    """The ``applied_action=<a>`` of a reward's frame_id (None when absent); ValueError if garbled."""
-    return _applied_action(str(msg.header.frame_id))
-
-
-def _applied_action(frame: str) -> int | None:
-    if not frame.startswith(APPLIED_ACTION_PREFIX):
-        return None
-    try:
-        return int(frame[len(APPLIED_ACTION_PREFIX):])
-    except ValueError:
-        raise ValueError(f"reward frame_id = {frame!r}, expected '{APPLIED_ACTION_PREFIX}<integer>'") from None
-
-
-def parse_reward(msg: Any) -> Reward:
-    """``reward`` message -> :class:`Reward`; ValueError naming the field if malformed."""
-    v = msg.vector
-    return reward_from_fields(header_ns(msg), str(msg.header.frame_id), v.x, v.y, v.z)
-
-
-def reward_from_fields(stamp_ns: int, frame_id: str, x: float, y: float, z: float) -> Reward:
-    """:func:`parse_reward` from the message's fields (the agent node's CDR reader decodes them itself)."""
-    if not math.isfinite(x) or abs(x) > FLOAT32_MAX:
-        raise ValueError(f"reward x = {x!r}, expected a finite number within float32 range (it is stored as float32)")
-    for name, flag in (("y (terminated)", y), ("z (truncated)", z)):
-        if flag not in (0.0, 1.0):
-            raise ValueError(f"reward {name} = {flag!r}, expected 0 or 1")
-    return Reward(int(stamp_ns), float(x), y == 1.0, z == 1.0, _applied_action(frame_id))
-
-
-def parse_command(msg: Any) -> tuple[int, list[int], list[float], str]:
-    """``lane_change_cmd`` -> (stamp_ns, buttons, axes, sender); validation is the receiver's job."""
-    return header_ns(msg), [int(b) for b in msg.buttons], [float(a) for a in msg.axes], str(msg.header.frame_id)
-
-
-def cdr_command_sender(data: bytes | memoryview) -> str | None:
-    """The sender id (``header.frame_id``) of a *serialized* ``lane_change_cmd``, read from its CDR
-    bytes without decoding the rest; None if the bytes cannot hold a header.
-
-    Why a parser of our own for four fields: a receiver that must screen a flood of commands by
-    sender (the bridge, after its first-publisher lock) pays ~50 us per message to have rclpy
-    build a ``sensor_msgs/Joy`` and judge it, and ~4-11 us to read the sender here and drop it
-    (measured on 800 queued commands, 2-core machine), so a flood from a stray publisher cannot
-    outpace it. Layout (XCDR1, ``std_msgs/Header`` first): 4-byte encapsulation (byte 1: 1 =
-    little endian), int32 sec, uint32 nanosec, uint32 length of frame_id including its NUL, the
-    characters.
-    """
-    if len(data) < 16:
-        return None
-    order = "<" if data[1] == 1 else ">"
-    (length,) = struct.unpack_from(f"{order}I", data, 12)
-    if length < 1 or 16 + length > len(data):
-        return None
-    return bytes(data[16:16 + length - 1]).decode("utf-8", errors="replace")
-
-
-def command_action(msg: Any) -> int:
-    """The action of a ``lane_change_cmd`` (``buttons[0]``); ValueError without one."""
-    if len(msg.buttons) < 1:
-        raise ValueError("lane_change_cmd without buttons[0] (the action)")
-    return int(msg.buttons[0])
-
-
-def point_field_names(msg: Any) -> tuple[str, ...]:
-    """Names of the fields of a PointCloud2, in order."""
-    return tuple(str(f.name) for f in msg.fields)
-
-
-def cloud_to_points(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray:
-    """``state`` PointCloud2 -> ``(width * height, n_fields)`` float64 array, bit-exact.
-
-    Every field must be FLOAT64, count 1, packed in order (the bridge's layout); ``fields``
-    (e.g. ``observation.POINT_FIELDS``) also pins the names; every value must be finite and
-    within float32's range (the simulator never sends others; a NaN would poison the replay).
-    Anything else raises ValueError naming the field: a silently re-typed observation would break
-    the promise that the agent, the environment and the export see bit-identical observations.
-    """
-    names = point_field_names(msg)
-    if fields is not None and names != tuple(fields):
-        raise ValueError(f"state fields = {names}, expected {tuple(fields)}")
-    for i, f in enumerate(msg.fields):
-        if f.datatype != POINTFIELD_FLOAT64 or f.offset != 8 * i or f.count != 1:
-            raise ValueError(
-                f"state field {f.name!r}: datatype {f.datatype} offset {f.offset} count {f.count}, "
-                f"expected FLOAT64 ({POINTFIELD_FLOAT64}) at offset {8 * i}, count 1"
-            )
-    step = 8 * len(names)
-    n = int(msg.width) * int(msg.height)
-    data = msg.data
-    if int(msg.point_step) != step or len(data) != n * step:
-        raise ValueError(
-            f"state point_step = {msg.point_step}, {len(data)} data bytes for {n} points, "
-            f"expected point_step {step} and {n * step} bytes"
-        )
-    return points_from_buffer(data, n, names, bool(msg.is_bigendian))
-
-
-def points_from_buffer(data: Any, n: int, names: Sequence[str], bigendian: bool = False) -> np.ndarray:
-    """The ``(n, len(names))`` float64 points of a ``state``'s data bytes (FLOAT64 fields in order), a
-    copy; ValueError naming the point and field of a value that is not finite or beyond float32's range.
-    The last step of :func:`cloud_to_points`, shared with the CDR reader of the agent node
-    (:mod:`der_ros.contract`), which has checked the rest of the layout itself."""
-    dtype = np.dtype(">f8" if bigendian else "<f8")
-    # rclpy gives array.array/bytes, rosbags a uint8 ndarray: all expose the buffer protocol
-    points = np.frombuffer(data, dtype=dtype).astype(np.float64).reshape(n, len(names))
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(points) | (np.abs(points) > FLOAT32_MAX)
-    if bad.any():  # a NaN/inf point would reach the observation (and the replay) of every consumer
-        row, col = (int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(f"state point {row} field {names[col]!r} = {points[row, col]!r}, expected a finite number "
-                         "within float32 range")
-    return points
-
-
-def odometry_pose(msg: Any) -> tuple[int, float, float, float, float]:
-    """``ego/odom`` -> (stamp_ns, x, y, SUMO angle in degrees [0, 360), forward speed).
-
-    SUMO angles are degrees clockwise from north; ROS (REP 103) yaw is counter-clockwise from
-    the x axis (east), so ``angle = 90 - degrees(yaw)``.
-    """
-    q = msg.pose.pose.orientation
-    yaw = 2.0 * math.atan2(q.z, q.w)
-    angle = (90.0 - math.degrees(yaw)) % 360.0
-    p = msg.pose.pose.position
-    return header_ns(msg), p.x, p.y, angle, msg.twist.twist.linear.x
-
-
-def format_value(value: object) -> str:
-    """A ``diagnostic_msgs/KeyValue`` value: ``repr`` of floats (exact round trip), ``str`` otherwise."""
-    return repr(value) if isinstance(value, float) else str(value)
-
-
-def _parse_value(text: str) -> int | float | str:
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
-def episode_values(episode: int, steps: int, ret: float | None = 0.0, lane_changes: int = 0,
-                   mean_speed: float = 0.0, **extra: object) -> dict[str, object]:
-    """The key/values of an ``episode`` event, in the order the bridge writes them (start events
-    carry only ``episode`` and ``steps``: pass ``ret=None``)."""
-    out: dict[str, object] = {"episode": int(episode), "steps": int(steps)}
-    if ret is not None:
-        out.update({"return": float(ret), "lane_changes": int(lane_changes), "mean_speed": float(mean_speed)})
-    out.update(extra)
-    return out
-
-
-def parse_key_values(values: Iterable[Any]) -> dict[str, int | float | str]:
-    """``diagnostic_msgs/KeyValue`` items -> key -> int, float or text (inverse of :func:`format_value`)."""
-    return {str(kv.key): _parse_value(str(kv.value)) for kv in values}
-
-
-def parse_episode_events(msg: Any) -> list[tuple[int, str, dict[str, int | float | str]]]:
-    """Every ``episode`` status of a DiagnosticArray as (stamp_ns, event, values)."""
-    stamp = header_ns(msg)
-    return [
-        (stamp, str(s.message), parse_key_values(s.values))
-        for s in msg.status
-        if s.name == EPISODE_STATUS
-    ]
-
-
-def diagnostics_to_metrics(msg: Any, names: Sequence[str] | None = None) -> dict[str, float]:
-    """Every numeric key/value of the statuses (optionally only those named ``names``) as floats."""
-    out: dict[str, float] = {}
-    for s in msg.status:
-        if names is not None and s.name not in names:
-            continue
-        for kv in s.values:
-            try:
-                out[str(kv.key)] = float(kv.value)
-            except ValueError:
-                continue
-    return out
-
-
-
-# -- the scene markers (``scene/vehicles``, ``scene/road``) ---------------------------------------
-# visualization_msgs/Marker constants (the message's own values; spelled here so ROS-free code
-# can build and read markers).
-MARKER_CUBE, MARKER_LINE_STRIP = 1, 4
-MARKER_ADD, MARKER_DELETE, MARKER_DELETEALL = 0, 2, 3
-#: marker namespace of the vehicles on ``scene/vehicles`` and of the lanes on ``scene/road``
-VEHICLE_NS, LANE_NS = "vehicles", "lanes"
-#: height (z size) of a vehicle's cube, m; its centre sits at half this height
-VEHICLE_HEIGHT = 1.5
-#: the learning vehicle
-EGO_ROLE = "ego"
-#: a vehicle that is neither the ego nor in a neighbour slot
-TRAFFIC_ROLE = "traffic"
-#: the role of a vehicle in the scene: the ego, one of the observation's neighbour slots
-#: (``sumo_bridge.observation.SLOT_NAMES``, in order), or other traffic
-SCENE_ROLES: tuple[str, ...] = (EGO_ROLE, "leader", "follower", "left_leader", "left_follower", "right_leader",
-                                "right_follower", TRAFFIC_ROLE)  # fmt: skip
-#: RGBA of each role: the ego red, the slots of the current lane orange/yellow, of the left lane
-#: greens, of the right lane blues (leaders darker than followers), traffic grey. A viewer tells
-#: the roles apart by colour alone, and :func:`role_of_colour` reads a role back from a marker.
-ROLE_COLOURS: dict[str, tuple[float, float, float, float]] = {
-    EGO_ROLE: (0.85, 0.10, 0.10, 1.0),
-    "leader": (1.0, 0.55, 0.0, 1.0),
-    "follower": (0.95, 0.80, 0.15, 1.0),
-    "left_leader": (0.05, 0.55, 0.20, 1.0),
-    "left_follower": (0.45, 0.80, 0.40, 1.0),
-    "right_leader": (0.10, 0.35, 0.85, 1.0),
-    "right_follower": (0.45, 0.70, 1.0, 1.0),
-    TRAFFIC_ROLE: (0.62, 0.62, 0.62, 1.0),
-}
-#: RGBA of the lanes on ``scene/road``
-LANE_COLOUR = (0.30, 0.30, 0.33, 1.0)
-_COLOUR_TOLERANCE = 2e-3  # ColorRGBA is float32
-
-
-class VehicleMarker(NamedTuple):
-    """One vehicle of ``scene/vehicles``: the cube's centre and heading in the map frame."""
-
-    marker_id: int
-    vehicle_id: str
-    role: str
-    x: float
-    y: float
-    #: heading, radians counter-clockwise from the map's x axis (REP 103)
-    yaw: float
-    length: float
-    width: float
-
-
-class LaneLine(NamedTuple):
-    """One lane of ``scene/road``: its centre line (``(n, 2)`` float64, m) and width (m)."""
-
-    lane_id: str
-    points: np.ndarray
-    width: float
-
-
-class SceneUpdate(NamedTuple):
-    """What one ``scene/vehicles`` message changes: vehicles added or moved, marker ids deleted, and
-    whether everything known before was cleared first (a DELETEALL clears what came before it,
-    markers being applied in array order as RViz applies them)."""
-
-    stamp_ns: int
-    vehicles: list[VehicleMarker]
-    deleted: list[int]
-    delete_all: bool
-
-
-def yaw_quaternion(yaw: float) -> tuple[float, float]:
-    """(z, w) of the quaternion of a rotation by ``yaw`` about the z axis (x = y = 0)."""
-    return math.sin(0.5 * yaw), math.cos(0.5 * yaw)
-
-
-def role_of_colour(r: float, g: float, b: float) -> str:
-    """The role whose colour (:data:`ROLE_COLOURS`) this is; ValueError naming the colour if none is."""
-    for role, (cr, cg, cb, _a) in ROLE_COLOURS.items():
-        if abs(r - cr) <= _COLOUR_TOLERANCE and abs(g - cg) <= _COLOUR_TOLERANCE and abs(b - cb) <= _COLOUR_TOLERANCE:
-            return role
-    raise ValueError(f"vehicle marker colour = ({r:.3f}, {g:.3f}, {b:.3f}), not the colour of any role in {SCENE_ROLES}")
-
-
-def parse_vehicle_markers(msg: Any) -> SceneUpdate:
-    """A ``scene/vehicles`` MarkerArray -> :class:`SceneUpdate` (markers of other namespaces are
-    ignored, so a viewer may add its own); ValueError naming the marker and field if malformed."""
-    vehicles: list[VehicleMarker] = []
-    deleted: list[int] = []
-    delete_all = False
-    stamp = 0
-    for i, m in enumerate(msg.markers):
-        if i == 0:
-            stamp = header_ns(m)
-        if m.action == MARKER_DELETEALL:
-            delete_all, vehicles, deleted = True, [], []
-            continue
-        if m.ns != VEHICLE_NS:
-            continue
-        if m.action == MARKER_DELETE:
-            deleted.append(int(m.id))
-            continue
-        if m.action != MARKER_ADD:
-            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): action = {m.action}, expected "
-                             f"ADD ({MARKER_ADD}), DELETE ({MARKER_DELETE}) or DELETEALL ({MARKER_DELETEALL})")
-        if m.type != MARKER_CUBE:
-            raise ValueError(f"scene/vehicles marker {i} (id {m.id}): type = {m.type}, expected CUBE ({MARKER_CUBE})")
-        q = m.pose.orientation
-        c = m.color
-        vehicles.append(VehicleMarker(
-            int(m.id), str(m.text), role_of_colour(c.r, c.g, c.b), float(m.pose.position.x), float(m.pose.position.y),
-            2.0 * math.atan2(q.z, q.w), float(m.scale.x), float(m.scale.y),
-        ))  # fmt: skip
-    return SceneUpdate(stamp, vehicles, deleted, delete_all)
-
-
-def parse_road_markers(msg: Any) -> list[LaneLine]:
-    """The lanes of a ``scene/road`` MarkerArray (LINE_STRIPs of namespace ``lanes``), in message order."""
-    lanes = []
-    for i, m in enumerate(msg.markers):
-        if m.ns != LANE_NS or m.action != MARKER_ADD:
-            continue
-        if m.type != MARKER_LINE_STRIP or len(m.points) < 2:
-            raise ValueError(f"scene/road marker {i} ({m.text!r}): type {m.type} with {len(m.points)} points, "
-                             f"expected a LINE_STRIP ({MARKER_LINE_STRIP}) of at least 2 points")
-        pts = np.array([(p.x, p.y) for p in m.points], dtype=np.float64)
-        lanes.append(LaneLine(str(m.text), pts, float(m.scale.x)))
-    return lanes

@@ -161,7 +161,7 @@ class AgentNode(Node):
 
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
         self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
-        # raw CDR: the state and the reward are read without rclpy's message objects (bag/step_cdr_read.py)
+        # raw CDR: the state and the reward are read without rclpy's message objects (der_ros/contract/state.py, reward.py)
         self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE), raw=True)
         self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD), raw=True)
         self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))

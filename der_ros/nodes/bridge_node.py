@@ -257,7 +257,7 @@ class BridgeNode(Node):
     def _publish_step(
         self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict, applied: int | None
     ) -> None:
-        # CDR bytes (bag/step_cdr.py): reward and state are on the round trip's critical path, so they go
+        # CDR bytes (der_ros/contract/): reward and state are on the round trip's critical path, so they go
         # first; /clock, the odometry and the scene follow while the agent computes its answer
         self.pub_reward.publish(reward_cdr(stamp, reward, terminated, truncated, applied))
         if not (terminated or truncated):
@@ -350,7 +350,7 @@ class BridgeNode(Node):
         if early is not None:
             self._log_reject(early, f"sender={sender!r}")
             return
-        command = read_command_cdr(data)  # little-endian plain CDR read directly (bag/step_cdr_read.py)
+        command = read_command_cdr(data)  # little-endian plain CDR read directly (der_ros/contract/command.py)
         if command is None:  # another encoding: rclpy decodes it
             try:
                 command = parse_command(deserialize_message(data, Joy))

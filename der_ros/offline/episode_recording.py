@@ -5,8 +5,8 @@ actions); the episode worth watching at the end is a *greedy* one of the trained
 module runs it in a plain :class:`~sumo_bridge.lane_change_env.LaneChangeEnv` (no graph needed)
 and writes what the bridge and agent would have published: the road once, then per step
 ``reward`` (naming the applied action) and ``state`` stamped t_k = k x step, the scene markers,
-the command answering the state, and the ``episode`` start/end events
-(:mod:`der_ros.contract`). ``der bag info/render/export`` read the result like any graph bag.
+the command answering the state, and the ``episode`` start/end events, as the contract's own
+bytes (:mod:`der_ros.contract`: the encoders the bridge and the agent publish with). ``der bag info/render/export`` read the result like any graph bag.
 """
 
 from __future__ import annotations
@@ -18,8 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.offline.messages import command_message, reward_message, state_message
-from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.writer import BagWriter
 from der_ros.contract import (
     COMMAND,
@@ -30,7 +28,12 @@ from der_ros.contract import (
     SCENE_ROAD,
     SCENE_VEHICLES,
     STATE,
+    command_cdr,
+    reward_cdr,
+    road_markers_cdr,
+    state_cdr,
     topic_spec,
+    vehicle_markers_cdr,
 )
 from sumo_bridge.observation import POINT_FIELDS, field_index
 
@@ -74,8 +77,8 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
         reward, terminated, truncated, applied = 0.0, False, False, None
         while True:
             t = k * step_ns
-            writer.write_message(REWARD, t + _AT_REWARD, reward_message(t, reward, terminated, truncated, applied))
-            writer.write_message(STATE, t + _AT_STATE, state_message(t, info["points"], POINT_FIELDS))
+            writer.write(REWARD, t + _AT_REWARD, reward_cdr(t, reward, terminated, truncated, applied))
+            writer.write(STATE, t + _AT_STATE, state_cdr(info["points"], t, fields=POINT_FIELDS))
             scene = env.scene()
             writer.write(SCENE_VEHICLES, t + _AT_SCENE, vehicle_markers_cdr(scene.vehicles, scene.removed, t, frame_id))
             if terminated or truncated:
@@ -84,7 +87,7 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
                                     lane_changes=lane_changes, mean_speed=speed_sum / max(k, 1), stamp_ns=t)  # fmt: skip
                 return RecordedEpisode(Path(path), k, ret, str(event), lane_changes)
             action = int(act(obs))
-            writer.write_message(COMMAND, t + _AT_COMMAND, command_message(t, action, "der_ros.offline.episode_recording"))
+            writer.write(COMMAND, t + _AT_COMMAND, command_cdr(t, action, "der_ros.offline.episode_recording"))
             obs, r, terminated, truncated, info = env.step(action)
             reward, applied = float(r), action
             ret += reward

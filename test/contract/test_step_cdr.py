@@ -1,20 +1,32 @@
-"""The bridge's per-step messages as CDR bytes (der_ros/contract/): rclpy decodes them into exactly
-the messages of the builders in der_ros/nodes/msg_conversions.py, and rosbags' serialiser gives the same bytes."""
+"""The per-step messages as CDR bytes (der_ros/contract/): rclpy decodes them into exactly the messages
+built field by field in test/ros_messages.py, and rosbags' serialiser gives the same bytes."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+import ros_messages as ref
 from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 
-from der_ros.contract import clock_cdr, command_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.contract import read_command_cdr, read_reward_cdr, read_state_cdr
 from der_ros.bag.writer import jazzy_typestore
-from der_ros.contract import cloud_to_points, header_ns, parse_command, parse_reward
+from der_ros.contract import (
+    clock_cdr,
+    cloud_to_points,
+    command_cdr,
+    header_ns,
+    odometry_cdr,
+    parse_command,
+    parse_reward,
+    read_command_cdr,
+    read_reward_cdr,
+    read_state_cdr,
+    reward_cdr,
+    state_cdr,
+)
 from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import POINT_FIELDS
 
@@ -31,7 +43,7 @@ def _check(data: bytes, expected: object, rclpy_type: type, rosbags_type: str) -
 def test_state(rows: int, frame: str) -> None:
     pts = np.random.default_rng(rows).normal(size=(rows, 12)) * 50.0
     stamp = 1_234_567_891_234
-    _check(state_cdr(pts, stamp, frame, fields=POINT_FIELDS), mc.points_to_cloud(pts, stamp, frame), PointCloud2, "sensor_msgs/msg/PointCloud2")
+    _check(state_cdr(pts, stamp, frame, fields=POINT_FIELDS), ref.points_to_cloud(pts, stamp, frame), PointCloud2, "sensor_msgs/msg/PointCloud2")
     with pytest.raises(ValueError, match="shape"):
         state_cdr(pts[:, :5], stamp, fields=POINT_FIELDS)
 
@@ -40,17 +52,17 @@ def test_state(rows: int, frame: str) -> None:
 @pytest.mark.parametrize("flags", [(False, False), (True, False), (False, True)])
 def test_reward(applied: int | None, flags: tuple[bool, bool]) -> None:
     for stamp, reward in ((0, 0.0), (5 * 10**8, -97.67), (10**12 + 1, 2.3388)):
-        _check(reward_cdr(stamp, reward, *flags, applied), mc.make_reward(stamp, reward, *flags, applied),
+        _check(reward_cdr(stamp, reward, *flags, applied), ref.make_reward(stamp, reward, *flags, applied),
                Vector3Stamped, "geometry_msgs/msg/Vector3Stamped")  # fmt: skip
 
 
 def test_clock_and_odometry() -> None:
     for stamp in (0, 1, 3 * 10**9 + 7, 2**31 * 10**9 - 1):
-        _check(clock_cdr(stamp), mc.make_clock(stamp), Clock, "rosgraph_msgs/msg/Clock")
+        _check(clock_cdr(stamp), ref.make_clock(stamp), Clock, "rosgraph_msgs/msg/Clock")
     for frame, child in (("map", "ego"), ("world", ""), ("", "ego_vehicle")):
         for angle in (0.0, 33.0, 271.5):
             _check(odometry_cdr(10**9, 1.5, -2.0, angle, 9.5, frame, child),
-                   mc.make_odometry(10**9, 1.5, -2.0, angle, 9.5, frame, child), Odometry, "nav_msgs/msg/Odometry")  # fmt: skip
+                   ref.make_odometry(10**9, 1.5, -2.0, angle, 9.5, frame, child), Odometry, "nav_msgs/msg/Odometry")  # fmt: skip
     with pytest.raises(ValueError, match="expected >= 0"):
         clock_cdr(-1)
 
@@ -59,7 +71,7 @@ def test_clock_and_odometry() -> None:
 # contract's parsers on every message, and says None (decode with rclpy) for any layout it does not own
 def test_command() -> None:
     for stamp, action, sender in ((0, 0, ""), (123, 2, "/agent_node#12"), (10**12 + 5, 1, "/ns/agent_node#4567")):
-        _check(command_cdr(stamp, action, sender), mc.make_command(stamp, action, sender), Joy, "sensor_msgs/msg/Joy")
+        _check(command_cdr(stamp, action, sender), ref.make_command(stamp, action, sender), Joy, "sensor_msgs/msg/Joy")
 
 
 def _flips(data: bytes, seed: int, n: int = 300) -> list[bytes]:
@@ -88,7 +100,7 @@ def test_read_state(frame: str) -> None:
     assert stamp == 1_234_567_891_234 and np.array_equal(read, pts) and read.flags.writeable
     assert read_state_cdr(state_cdr(pts[:0], 7, frame, fields=POINT_FIELDS), POINT_FIELDS)[1].shape == (0, 12)
     # rclpy's serialiser leaves padding bytes as they were: not our layout, so the general path decodes it
-    general = serialize_message(mc.points_to_cloud(pts, 5, frame))
+    general = serialize_message(ref.points_to_cloud(pts, 5, frame))
     fast = read_state_cdr(general, POINT_FIELDS)
     assert fast is None or (fast[0] == 5 and np.array_equal(fast[1], pts))
     # other layouts: None (another field table, big-endian encapsulation, truncated, trailing bytes)
@@ -102,7 +114,7 @@ def test_read_state(frame: str) -> None:
     with pytest.raises(ValueError, match="state point 4 field") as fast_err:
         read_state_cdr(state_cdr(bad, 5, frame, fields=POINT_FIELDS), POINT_FIELDS)
     with pytest.raises(ValueError) as general_err:
-        cloud_to_points(mc.points_to_cloud(bad, 5, frame), POINT_FIELDS)
+        cloud_to_points(ref.points_to_cloud(bad, 5, frame), POINT_FIELDS)
     assert str(fast_err.value) == str(general_err.value)
     # corrupted bytes: whatever the fast path accepts, rclpy + cloud_to_points give the same
     for b in _flips(data, 11):
@@ -121,7 +133,7 @@ def test_read_state(frame: str) -> None:
 def test_read_reward(applied: int | None) -> None:
     for stamp, reward, flags in ((0, 0.0, (False, False)), (5 * 10**8, -97.67, (True, False)), (10**12 + 1, 2.3, (False, True))):
         for data in (reward_cdr(stamp, reward, *flags, applied),
-                     serialize_message(mc.make_reward(stamp, reward, *flags, applied))):
+                     serialize_message(ref.make_reward(stamp, reward, *flags, applied))):
             assert read_reward_cdr(data) == parse_reward(deserialize_message(data, Vector3Stamped))
     data = reward_cdr(5, 1.0, False, False, applied)
     assert read_reward_cdr(b"\x00\x00" + data[2:]) is None  # big-endian
@@ -136,7 +148,7 @@ def test_read_reward(applied: int | None) -> None:
 
 
 def test_read_command() -> None:
-    msgs = [mc.make_command(123, 2, "/agent_node#12"), Joy(buttons=[1, 0, 1], axes=[0.5, -1.0])]
+    msgs = [ref.make_command(123, 2, "/agent_node#12"), Joy(buttons=[1, 0, 1], axes=[0.5, -1.0])]
     for msg in msgs:
         for data in (serialize_message(msg),):
             assert read_command_cdr(data) == parse_command(deserialize_message(data, Joy))
@@ -148,3 +160,15 @@ def test_read_command() -> None:
         fast = read_command_cdr(b)
         if fast is not None:  # nothing the fast path accepts is read differently by rclpy
             assert fast == _rclpy_or_error(lambda b=b: parse_command(deserialize_message(b, Joy)))
+
+
+def test_the_nodes_rclpy_builders_are_the_contracts_bytes() -> None:
+    """msg_conversions builds its messages from the contract's bytes: the same messages as the reference."""
+    pts = np.random.default_rng(3).normal(size=(4, len(POINT_FIELDS)))
+    assert mc.points_to_cloud(pts, 77, "ego") == ref.points_to_cloud(pts, 77, "ego")
+    assert mc.make_reward(77, -1.5, True, False, 2) == ref.make_reward(77, -1.5, True, False, 2)
+    assert mc.make_command(77, 1, "/agent") == ref.make_command(77, 1, "/agent")
+    assert mc.make_odometry(77, 1.0, 2.0, 45.0, 9.0) == ref.make_odometry(77, 1.0, 2.0, 45.0, 9.0)
+    assert mc.make_clock(77) == ref.make_clock(77)
+    with pytest.raises(ValueError, match="expected >= 0"):
+        mc.make_reward(-1, 0.0, False, False)
