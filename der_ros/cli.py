@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "table2": ("der_ros.experiments.table2", "run the paper's Table 2 (Atari) protocol"),
     "table3": ("der_ros.experiments.table3", "reproduce the paper's Table 3 (SUMO ring and urban) over several seeds"),
     "baselines": ("der_ros.experiments.baselines", "evaluate the baselines (keep, immediate, gap acceptance, SUMO's model...) or tune gap acceptance"),
+    "evaluate": ("der_ros.experiments.evaluate_runs", "re-evaluate trained runs' checkpoints greedily on more evaluation seeds"),
     "sweep": ("der_ros.experiments.sweep", "run a grid of config overrides x seeds (tuning), ranked by greedy evaluation"),
     "graph": ("der_ros.graph.graph_cli", "run the ROS 2 graph: SUMO bridge, DER agent and MCAP recorder"),
     "bag": ("der_ros.offline.bag_cli", "inspect, plot, export, train from, render and play recorded MCAP bags"),

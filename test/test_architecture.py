@@ -308,3 +308,18 @@ def test_cores_import_without_rclpy() -> None:
     proc = subprocess.run([sys.executable, "-c", code_node], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode != 0 and "is blocked" in proc.stderr
+
+
+def test_the_product_does_not_import_research() -> None:
+    """research/ lives beside the product: no module of der_ros or sumo_bridge imports from it (and the
+    checker sees a research import when there is one)."""
+    modules = all_modules()
+    wrong = [f"{m}:{line} imports {name}" for m, path in modules.items()
+             for name, line, _top in imports_of(path, modules) if name.split(".")[0] == "research"]  # fmt: skip
+    assert not wrong, "\n".join(wrong)
+    sample = REPO / "der_ros" / "_research_check_sample.py"
+    sample.write_text("def f():\n    from research.tuning import compare_arms\n    return compare_arms\n")
+    try:
+        assert [n for n, _, _ in imports_of(sample, modules)] == ["research.tuning"]
+    finally:
+        sample.unlink()

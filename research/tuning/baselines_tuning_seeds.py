@@ -21,9 +21,10 @@ import collections
 from pathlib import Path
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
-from der_ros.experiments.baselines import GapAcceptanceParams, _network, evaluate_baseline, load_gap_params
+from der_ros.experiments.baselines import GapAcceptanceParams, evaluate_baseline, load_gap_params
 from der_ros.train.config import load_experiment_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
+from sumo_bridge import ENV_NETWORKS
 
 
 def main() -> None:
@@ -45,7 +46,7 @@ def main() -> None:
     args = ap.parse_args()
     seed_base = TUNING_EVAL_SEED_BASE if args.seed_set == "tuning" else EVAL_SEED_BASE
     cfg = load_experiment_config(args.config)
-    net = _network(cfg.env)
+    net = ENV_NETWORKS.get(cfg.env.id)
     if net is None:
         raise SystemExit(f"{args.config}: env.id = {cfg.env.id!r} is not a SUMO lane-change env")
     runs = [(name, load_gap_params(net) if name == "gap_acceptance" else None) for name in args.baselines]

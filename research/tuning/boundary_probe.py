@@ -29,9 +29,9 @@ import numpy as np
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.configuration import from_dict
-from der_ros.experiments.baselines import _network
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
+from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.observation import ObservationConfig, encode_observation, field_index
 
 DIAGNOSTIC_SEED = 2_000_000_000
@@ -46,7 +46,7 @@ def _towards_target(ego_rows: np.ndarray) -> np.ndarray:
 
 def collect(config: Path, changes: int, seed: int, out: Path) -> None:
     cfg = load_experiment_config(config)
-    if _network(cfg.env) is None:
+    if ENV_NETWORKS.get(cfg.env.id) is None:
         raise SystemExit(f"{config}: env.id = {cfg.env.id!r} is not a SUMO lane-change env")
     env = make_env_from_config(cfg.env, seed)
     rng = np.random.default_rng(seed)

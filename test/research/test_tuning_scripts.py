@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-BASELINES = REPO / "results" / "tuning" / "baselines_tuning_seeds.py"
+BASELINES = REPO / "research" / "tuning" / "baselines_tuning_seeds.py"
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
@@ -29,7 +29,7 @@ def test_baselines_on_tuning_seeds_refuses_a_non_sumo_config() -> None:
     assert "is not a SUMO lane-change env" in out.stderr
 
 
-PROBE = REPO / "results" / "tuning" / "boundary_probe.py"
+PROBE = REPO / "research" / "tuning" / "boundary_probe.py"
 
 
 def test_boundary_probe_collects_labelled_changes_and_scores_a_run(tmp_path: Path) -> None:
