@@ -43,8 +43,8 @@ def record(network: str, steps: int, path: Path) -> float:
 
 def parts(bag: Path, out: Path) -> dict[str, float]:
     """The render split into read / draw / write (same calls as render_bag)."""
-    from der_ros.offline.animation import write_animation
     from der_ros.bag.reader import BagReader
+    from der_ros.offline.animation import write_animation
     from der_ros.offline.render import PALETTE, Caption, RenderOptions, _font, draw_frame, frame_view
     from der_ros.offline.scene_frames import read_scene
 

@@ -26,11 +26,18 @@ from pathlib import Path
 
 import yaml
 
-from der_ros.graph.snapshot_evaluation import GraphEvaluator
 from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.run_progress import Progress
 from der_ros.graph.run_summary import bridge_summary, report, snapshot_from_bag, unanswered_run
-from der_ros.graph.supervisor import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
+from der_ros.graph.snapshot_evaluation import GraphEvaluator
+from der_ros.graph.supervisor import (
+    ChildFailed,
+    ProcessSpec,
+    RunOutcome,
+    Supervisor,
+    reserve_domain_id,
+    ros_environment,
+)
 from der_ros.interrupts import interrupts_raise
 from der_ros.nodes.params import build_graph_params, load_params_file
 

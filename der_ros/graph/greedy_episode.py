@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from der_ros.agent.config import DQNConfig
+from der_ros.graph.snapshot_evaluation import observation_shape, scenario_env_config
 from der_ros.offline.episode_recording import record_episode
 from der_ros.offline.render import render_bag
-from der_ros.graph.snapshot_evaluation import observation_shape, scenario_env_config
 from der_ros.train.config import EnvConfig
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy

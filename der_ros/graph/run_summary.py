@@ -22,13 +22,13 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from der_ros.offline.bag_plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.bag.writer import read_episode_summary
 from der_ros.contract import COMMAND, EPISODE_COLLISION, EPISODE_START, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
 from der_ros.graph.greedy_episode import GreedyEpisode
 from der_ros.graph.run_progress import ProgressSnapshot
 from der_ros.graph.supervisor import RunOutcome
+from der_ros.offline.bag_plots import plot_bags
 from der_ros.train.evaluation import EvalResult
 
 __all__ = ["bridge_summary", "snapshot_from_bag", "report"]

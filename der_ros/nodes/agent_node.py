@@ -51,8 +51,6 @@ from std_srvs.srv import SetBool, Trigger
 
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.online import OnlineLearner
-from der_ros.contract import command_cdr
-from der_ros.contract import read_reward_cdr, read_state_cdr
 from der_ros.contract import (
     COMMAND,
     EPISODE,
@@ -61,9 +59,12 @@ from der_ros.contract import (
     REWARD,
     STATE,
     cloud_to_points,
+    command_cdr,
     header_ns,
     parse_episode_events,
     parse_reward,
+    read_reward_cdr,
+    read_state_cdr,
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc

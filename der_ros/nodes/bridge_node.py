@@ -62,9 +62,6 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
-from der_ros.contract import clock_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.contract import read_command_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -81,8 +78,15 @@ from der_ros.contract import (
     SCENE_VEHICLES,
     STATE,
     cdr_command_sender,
+    clock_cdr,
     episode_values,
+    odometry_cdr,
     parse_command,
+    read_command_cdr,
+    reward_cdr,
+    road_markers_cdr,
+    state_cdr,
+    vehicle_markers_cdr,
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc

@@ -24,14 +24,14 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from der_ros.offline.episodes import scan_bag
-from der_ros.offline.export import build_transitions, save_transitions
-from der_ros.offline.train_from_bags import add_train_arguments, run_train
-from der_ros.offline.bag_plots import plot_bags
 from der_ros.bag.reader import BagError, BagReader, DamagedChunk, DamagedChunkWarning, TruncatedBagWarning
-from der_ros.offline.render import RenderOptions, render_bag
 from der_ros.configuration import load_yaml
 from der_ros.contract import EPISODE_COLLISION, EPISODE_ENDS, EPISODE_SUCCESS, qos_text
+from der_ros.offline.bag_plots import plot_bags
+from der_ros.offline.episodes import scan_bag
+from der_ros.offline.export import build_transitions, save_transitions
+from der_ros.offline.render import RenderOptions, render_bag
+from der_ros.offline.train_from_bags import add_train_arguments, run_train
 from sumo_bridge.observation import ObservationConfig
 
 __all__ = ["add_arguments", "run", "bag_info"]

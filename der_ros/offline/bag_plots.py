@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from der_ros.offline.episodes import BagScan, scan_bag
 from der_ros.bag.reader import BagReader
 from der_ros.contract import EPISODE_ENDS
+from der_ros.offline.episodes import BagScan, scan_bag
 
 __all__ = ["plot_bags", "plot_scans", "moving_average"]
 

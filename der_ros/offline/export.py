@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from der_ros.offline.episodes import iter_steps, mistyped_topics, resolve_topics
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import flatten_names, from_dict, unflatten_names
 from der_ros.contract import REWARD, STATE
+from der_ros.offline.episodes import iter_steps, mistyped_topics, resolve_topics
 from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, encode_observation
 
 __all__ = ["Transitions", "build_transitions", "save_transitions", "load_transitions", "observation_config_of"]

@@ -28,10 +28,10 @@ from builtin_interfaces.msg import Time
 from rclpy.executors import ExternalShutdownException
 from rosgraph_msgs.msg import Clock
 
-from der_ros.offline.episodes import mistyped_topics
 from der_ros.bag.reader import BagError, BagReader, Connection, Message
 from der_ros.contract import CLOCK, merged_qos, topic_by_name, topic_spec
 from der_ros.contract_ros import message_class, qos_profile
+from der_ros.offline.episodes import mistyped_topics
 
 __all__ = ["run_play", "play_bag"]
 

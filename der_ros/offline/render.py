@@ -25,10 +25,10 @@ from pathlib import Path
 
 from PIL import Image, ImageDraw, ImageFont
 
-from der_ros.offline.animation import check_output, write_animation
 from der_ros.bag.reader import BagReader
-from der_ros.offline.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
 from der_ros.contract import ACTION_NAMES, EGO_ROLE, LANE_COLOUR, ROLE_COLOURS, TRAFFIC_ROLE, LaneLine, VehicleMarker
+from der_ros.offline.animation import check_output, write_animation
+from der_ros.offline.scene_frames import EpisodeFrames, Frame, SceneRecording, read_scene
 
 __all__ = ["RenderOptions", "View", "RenderResult", "network_view", "follow_view", "frame_view", "draw_frame",
            "render_recording", "render_bag", "Caption", "caption_lines", "PALETTE"]  # fmt: skip

@@ -22,9 +22,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from der_ros.offline.episodes import EpisodeSummary, resolve_topics, scan_bag
 from der_ros.bag.reader import BagError, BagReader
-from der_ros.contract import first_stamp_ns
 from der_ros.contract import (
     COMMAND,
     EGO_ROLE,
@@ -34,11 +32,13 @@ from der_ros.contract import (
     LaneLine,
     VehicleMarker,
     command_action,
+    first_stamp_ns,
     header_ns,
     parse_reward,
     parse_road_markers,
     parse_vehicle_markers,
 )
+from der_ros.offline.episodes import EpisodeSummary, resolve_topics, scan_bag
 
 __all__ = ["Frame", "EpisodeFrames", "SceneRecording", "select_episodes", "read_scene"]
 

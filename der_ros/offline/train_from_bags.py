@@ -27,11 +27,11 @@ import numpy as np
 import yaml
 
 from der_ros.agent.config import DQNConfig
-from der_ros.offline.episodes import scan_bag
-from der_ros.offline.export import Transitions, build_transitions
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import ConfigError, flatten_names, load_yaml, unflatten_names, validate
 from der_ros.contract import EPISODE_COLLISION, EPISODE_SUCCESS, EPISODE_TIME_LIMIT
+from der_ros.offline.episodes import scan_bag
+from der_ros.offline.export import Transitions, build_transitions
 from der_ros.replay.config import ReplayConfig
 from der_ros.train.envs import make_env
 from sumo_bridge import NETWORK_ENV_IDS

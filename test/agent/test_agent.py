@@ -216,6 +216,7 @@ def test_hard_target_update_every_n_gradient_steps() -> None:
             assert same_as_online and not unchanged
 
 
+@pytest.mark.slow
 def test_polyak_target_update() -> None:
     tau = 0.1
     agent = small_agent(target_update_interval=1, tau=tau)
@@ -301,6 +302,7 @@ def drive(agent: DQNAgent, start: int, stop: int) -> list[float]:
     return losses
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["uniform", "per", "der"])
 def test_checkpoint_resume_is_bit_exact(kind: str, tmp_path) -> None:
     dqn = DQNConfig(

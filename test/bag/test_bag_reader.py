@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 from bag_helpers import TS, msg_cmd, msg_reward, write_foreign_bag
+from mcap.reader import make_reader
 
 from der_ros.bag.reader import BagError, BagReader, DamagedChunkWarning, TruncatedBagWarning
 from der_ros.bag.writer import BagWriter
@@ -237,6 +237,7 @@ def test_a_damaged_chunk_header_is_stepped_over_with_the_chunk_index(tmp_path: P
         assert len(warned) == 1 and f"bytes {start}-{end}" in warned[0] and "chunk index" in warned[0], warned
 
 
+@pytest.mark.slow
 def test_flipped_bytes_anywhere_skip_a_chunk_or_give_a_bag_error(tmp_path: Path) -> None:
     """Flips all over the file: the reader skips the chunk they damaged (and reads the others
     exactly), or raises a BagError naming file and offset, or the flip hit bytes a streamed read
@@ -269,6 +270,7 @@ def test_flipped_bytes_anywhere_skip_a_chunk_or_give_a_bag_error(tmp_path: Path)
     assert errors + skipped < len(positions)
 
 
+@pytest.mark.slow
 def test_reader_streams_without_materialising_messages(tmp_path: Path) -> None:
     n = 100_000
     w = BagWriter(tmp_path / "big", flush_every_messages=1_000_000, flush_every_seconds=3600.0)
@@ -343,6 +345,7 @@ def test_split_bag_and_unchunked_mcap(tmp_path: Path) -> None:
     assert 0 < len(xs_cut) < 20 and xs_cut == [float(i) for i in range(len(xs_cut))]
 
 
+@pytest.mark.slow
 def test_bag_of_a_killed_writer_process(tmp_path: Path) -> None:
     """SIGKILL a process writing through BagWriter: everything flushed is read back, in order."""
     import signal
@@ -383,6 +386,7 @@ while True:
     assert xs == [float(i) for i in range(len(xs))]
 
 
+@pytest.mark.slow
 def test_flipped_bytes_in_a_bag_without_crcs_never_escape_as_other_errors(tmp_path: Path) -> None:
     """rosbags writes no CRCs: a flip may go unnoticed in a payload, but never crashes the reader;
     a chunk whose records stop parsing is skipped (minus the messages read before the damage)."""

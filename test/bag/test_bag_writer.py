@@ -145,6 +145,7 @@ def test_zstd_and_lz4_compression_round_trip(tmp_path: Path) -> None:
             assert [TS.deserialize_cdr(d, c.msgtype).data for c, _, d in r.messages()] == ["x" * 200] * 100
 
 
+@pytest.mark.slow
 def test_a_long_recording_does_not_grow_the_writers_memory(tmp_path: Path) -> None:
     """Memory per recorded step is flat: every episode event used to stay in memory for the bag's summary (~60 B per
     decision step, the recorder's creep on a 30k-step run); now the flushed ones live only in episodes.jsonl. And
@@ -293,6 +294,7 @@ _KILL_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path) -> None:
     bag = tmp_path / "killed"
     flush_every, total = 16, 150

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from der_ros.experiments.aggregate import iqm_interval, mean_interval, probability_of_improvement
 
@@ -14,6 +15,7 @@ def _all() -> list[list[float]]:
     return [iqm_interval(X).to_list(), mean_interval(X).to_list(), probability_of_improvement(Y, X, reps=500).to_list()]
 
 
+@pytest.mark.slow
 def test_intervals_do_not_depend_on_the_global_random_state_and_leave_it_alone() -> None:
     np.random.seed(1)
     first = _all()

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from der_ros import cli
+from der_ros.experiments.backends.artifacts import collect_files, relocate_summary, write_files
 from der_ros.experiments.backends.dispatch import (
     BackendError,
     LocalBackend,
@@ -25,7 +26,6 @@ from der_ros.experiments.backends.dispatch import (
     add_backend_arguments,
     backend_from_args,
 )
-from der_ros.experiments.backends.artifacts import collect_files, relocate_summary, write_files
 from der_ros.experiments.backends.suite_progress import SuiteProgress
 from der_ros.experiments.run_compare import comparable_run, run_differences
 from der_ros.experiments.suite import PAPER_METHODS, plan_runs

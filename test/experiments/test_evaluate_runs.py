@@ -10,6 +10,8 @@ import pytest
 from der_ros.cli import main as der_main
 from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE, EvalResult
 
+pytestmark = pytest.mark.slow  # trains and runs SUMO: minutes on a loaded 2-core machine
+
 REPO = Path(__file__).resolve().parents[2]
 
 

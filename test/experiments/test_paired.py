@@ -63,6 +63,7 @@ def test_counts_pair_episodes_by_seed_and_skip_unseeded_follow_ups() -> None:
     assert paired_counts([_ev([(S + 7, "success", False)])], base) is None
 
 
+@pytest.mark.slow
 def test_table3_pairs_learned_runs_with_the_gap_rule_and_sumo(tmp_path: Path) -> None:
     gap = _ev([(S, "success", False), (S + 1, "time_limit", False)])
     sumo = _ev([(S, "success", False), (S + 1, "success", False)])
@@ -99,6 +100,7 @@ def test_permutation_test_counts_sign_assignments_exactly_and_samples_reproducib
         paired_permutation_p([1.0, float("nan")])
 
 
+@pytest.mark.slow
 def test_table3_names_a_difference_by_situation_only_when_the_permutation_test_finds_one(tmp_path: Path) -> None:
     # the rule gets through six situations the agent fails in both runs: significant (p = 2/64)
     fails = [(S + k, "time_limit", False) for k in range(6)]

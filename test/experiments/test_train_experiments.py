@@ -80,6 +80,7 @@ def test_methods_and_run_plan() -> None:
         methods_by_name(["dqn", "nope"])
 
 
+@pytest.mark.slow
 def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out, results = tmp_path / "runs", tmp_path / "results"
     argv = ["table1", "--config", str(REPO / "config" / "cartpole.yaml"), "--seeds", "2", "--steps", "300"]
@@ -123,6 +124,7 @@ def test_table1_end_to_end_and_resumable(tmp_path: Path, capsys: pytest.CaptureF
     capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_table3_tiny_end_to_end_writes_the_evaluation_columns(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out, results = tmp_path / "runs", tmp_path / "results"
     argv = ["table3", "--networks", "ring", "--methods", "dqn", "der0.9", "--seeds", "1", "--steps", "120"]
@@ -155,6 +157,7 @@ def test_table3_tiny_end_to_end_writes_the_evaluation_columns(tmp_path: Path, ca
     capsys.readouterr()
 
 
+@pytest.mark.slow
 def test_table2_short_atari_run(tmp_path: Path) -> None:
     out, results = tmp_path / "runs", tmp_path / "results"
     argv = ["table2", "--config", str(REPO / "config" / "atari.yaml"), "--games", "Breakout", "--methods", "der0.1"]
@@ -172,6 +175,7 @@ def test_table2_short_atari_run(tmp_path: Path) -> None:
     assert "ALE/Breakout-v5" in cfg
 
 
+@pytest.mark.slow
 def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
     from der_ros.experiments.backends.dispatch import run_specs
     from der_ros.experiments.suite import PAPER_METHODS, SuiteRunError, plan_runs
@@ -190,6 +194,7 @@ def test_a_failing_run_does_not_stop_the_suite(tmp_path: Path) -> None:
     assert not (tmp_path / "bad" / "dqn" / "seed0" / "summary.json").exists()
 
 
+@pytest.mark.slow
 def test_a_run_directory_made_with_other_settings_is_refused(tmp_path: Path) -> None:
     from der_ros.configuration import ConfigError
     from der_ros.experiments.backends.dispatch import run_specs
@@ -251,6 +256,7 @@ def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path
         _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule]))
 
 
+@pytest.mark.slow
 def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
     unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""

@@ -307,8 +307,8 @@ def test_composed_mode_runs_the_same_graph_in_one_process(ros_domain: int, tmp_p
 def test_the_greedy_film_runs_the_plain_horizon():
     """A commit ends the episode at the lane change; the GIF's env turns it off (same decisions and
     return, the ego seen driving on) and leaves every other scenario field alone."""
-    from der_ros.graph.snapshot_evaluation import scenario_env_config
     from der_ros.graph.greedy_episode import watchable_env_config
+    from der_ros.graph.snapshot_evaluation import scenario_env_config
 
     bridge = {"scenario.network": "ring", "scenario.commit_on_success": True, "scenario.max_episode_steps": 30}
     env_cfg = scenario_env_config(bridge)

@@ -26,8 +26,8 @@ from ros_harness import *  # noqa: F403 - ros_domain fixture
 from test_graph_cli import der_graph, node_logs, reap
 
 from der_ros.agent.dqn import DQNAgent
-from der_ros.offline.export import build_transitions
 from der_ros.bag.reader import BagReader
+from der_ros.offline.export import build_transitions
 
 
 def freeze_agent_now_and_then(run_dir: Path, done: threading.Event, pause: float = 0.010,

@@ -67,6 +67,7 @@ def test_der_graph_started_in_the_background_stops_on_sigint(ros_domain: int, tm
     assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_der_train_started_in_the_background_checkpoints_on_sigint_and_sigterm(tmp_path: Path, sig: int) -> None:
     run_dir = tmp_path / "run"
@@ -89,6 +90,7 @@ def test_der_train_started_in_the_background_checkpoints_on_sigint_and_sigterm(t
     assert DQNAgent.load(run_dir / "checkpoint.pt").steps == summary["steps"]
 
 
+@pytest.mark.slow
 def test_a_table_started_in_the_background_stops_its_runs_on_sigint(tmp_path: Path) -> None:
     """The suite's workers ignore SIGINT while idle; a SIGINT sent to the parent alone is passed on to the
     running trainings, which write their checkpoints (a rerun continues them)."""

@@ -24,6 +24,7 @@ def der_graph(*args: str) -> subprocess.CompletedProcess[str]:
                           cwd=REPO, capture_output=True, text=True, timeout=120)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("override", "line"),
     [
@@ -50,6 +51,7 @@ def test_der_graph_rejects_a_bad_parameter_before_any_process_starts(tmp_path: P
     assert not run_dir.exists()  # nothing started, nothing written
 
 
+@pytest.mark.slow
 def test_der_graph_names_the_params_file_of_a_bad_value_and_rejects_binary_garbage(tmp_path: Path) -> None:
     doc = yaml.safe_load(PARAMS.read_text())
     doc["agent_node"]["ros__parameters"]["replay.capacity"] = -5

@@ -11,11 +11,11 @@ import torch
 from bag_helpers import record_env_bag
 
 from der_ros.agent.config import DQNConfig
+from der_ros.bag.reader import BagReader
+from der_ros.cli import main as der_main
+from der_ros.offline.bag_cli import bag_info
 from der_ros.offline.export import build_transitions
 from der_ros.offline.train_from_bags import fill_replay, make_agent, online_numbers, train_offline
-from der_ros.bag.reader import BagReader
-from der_ros.offline.bag_cli import bag_info
-from der_ros.cli import main as der_main
 from der_ros.replay.config import ReplayConfig
 
 
@@ -56,6 +56,7 @@ def test_offline_training_updates_the_network_and_der_promotes(bag: Path) -> Non
     assert np.isfinite(res.final_metrics["losses/td_loss"])
 
 
+@pytest.mark.slow
 def test_cli_train_reports_offline_and_online_numbers(bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["bag", "train", str(bag), "--replay", "der", "--lam", "0.9", "--steps", "30", "--batch-size", "8",
             "--eval-episodes", "2", "--max-episode-steps", "10", "--json"]

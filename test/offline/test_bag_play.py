@@ -15,12 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
 from bag_helpers import record_env_bag, write_foreign_bag, write_json_mcap, write_mistyped_bag
+from ros_harness import NodeProcess, ros_domain, ros_graph, wait_for  # noqa: F401 (fixtures)
 
-from der_ros.offline.play import play_bag
 from der_ros.bag.reader import BagReader
 from der_ros.contract import QosSpec, merged_qos
+from der_ros.offline.play import play_bag
 
 #: receive time vs recorded time (scaled by the rate), per message, relative to the first message
 TIMING_TOLERANCE_S = 0.05
@@ -160,8 +160,8 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
 
 def test_a_bag_with_other_types_on_our_topics_or_no_ros_messages_is_not_played(tmp_path: Path) -> None:
     """Our topic names with other types, or a JSON MCAP: an error naming what was found, nothing published."""
-    from der_ros.offline.export import build_transitions
     from der_ros.bag.reader import BagError
+    from der_ros.offline.export import build_transitions
 
     write_mistyped_bag(tmp_path / "mistyped", n=5)
     node = _FakeNode()

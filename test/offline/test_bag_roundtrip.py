@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from bag_helpers import GraphBagWriter, record_env_bag, write_foreign_bag
 
+from der_ros.bag.reader import BagError, BagReader
+from der_ros.cli import main as der_main
+from der_ros.offline.bag_cli import INFO_SCHEMA_VERSION, bag_info
+from der_ros.offline.bag_plots import plot_bags
 from der_ros.offline.episodes import iter_steps, resolve_topics, scan_bag
 from der_ros.offline.export import build_transitions, load_transitions, save_transitions
-from der_ros.offline.bag_plots import plot_bags
-from der_ros.bag.reader import BagError, BagReader
-from der_ros.offline.bag_cli import INFO_SCHEMA_VERSION, bag_info
-from der_ros.cli import main as der_main
 
 
 @pytest.fixture(scope="module")
@@ -202,6 +202,7 @@ def test_der_replay_is_the_old_spelling_of_der_bag(env_bag: tuple[Path, object],
     assert "der bag export: --to t.csv" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_export_and_plot(env_bag: tuple[Path, object], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path, truth = env_bag
     out = tmp_path / "t.npz"
@@ -216,6 +217,7 @@ def test_cli_export_and_plot(env_bag: tuple[Path, object], tmp_path: Path, capsy
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 5000
 
 
+@pytest.mark.slow
 def test_foreign_bag_info_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     counts = write_foreign_bag(tmp_path / "foreign", n=60)
     info = bag_info(tmp_path / "foreign")

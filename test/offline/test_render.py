@@ -8,17 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from bag_helpers import record_env_bag
+from PIL import Image
 
 from der_ros import cli
+from der_ros.bag.reader import BagError, BagReader
+from der_ros.contract import ACTION_NAMES
 from der_ros.offline import animation
 from der_ros.offline.episode_recording import record_episode
 from der_ros.offline.episodes import EpisodeSummary
-from der_ros.bag.reader import BagError, BagReader
 from der_ros.offline.render import PALETTE, ROLE_RGB, RenderOptions, caption_lines, frame_view, render_bag
 from der_ros.offline.scene_frames import read_scene, select_episodes
-from der_ros.contract import ACTION_NAMES
 from sumo_bridge.lane_change_env import ACTION_MEANINGS, LaneChangeEnv
 from sumo_bridge.scenario import ScenarioConfig
 
@@ -53,6 +53,7 @@ def gif_frame(path: Path, index: int) -> Image.Image:
         return im.convert("RGB")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("network", ["ring", "urban"])
 def test_one_frame_per_step_with_the_ego_drawn_where_it_was(tmp_path: Path, network: str) -> None:
     bag, gif = tmp_path / "bag", tmp_path / "episode.gif"

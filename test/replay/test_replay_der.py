@@ -368,6 +368,7 @@ def test_lambda_zero_is_uniform_dqn_and_one_is_h2_only():
     assert b1.h2_size >= 8
 
 
+@pytest.mark.slow
 def test_building_a_prioritized_buffer_loads_the_compiled_kernels() -> None:
     """make_replay loads the numba kernels (warm_up_kernels), so the ~0.5 s load does not fall on
     the first gradient step. Run in a fresh process: this one may have loaded them already."""

@@ -6,6 +6,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.slow  # trains and runs SUMO: minutes on a loaded 2-core machine
+
 REPO = Path(__file__).resolve().parents[2]
 BASELINES = REPO / "research" / "tuning" / "baselines_tuning_seeds.py"
 

@@ -14,8 +14,8 @@ import pytest
 import sumolib
 
 from der_ros import contract as ct
-from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.writer import jazzy_typestore
+from der_ros.contract import road_markers_cdr, vehicle_markers_cdr
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.scenario import ScenarioConfig
 from sumo_bridge.scene import Scene
@@ -95,6 +95,7 @@ def test_ring_markers_on_traci_come_from_subscriptions_and_match_the_simulation(
         env.close()
 
 
+@pytest.mark.slow
 def test_urban_markers_follow_the_new_ego_of_each_episode() -> None:
     env = LaneChangeEnv(ScenarioConfig.urban(max_episode_steps=3))
     try:

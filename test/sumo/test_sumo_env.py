@@ -111,6 +111,7 @@ def _compare_slots(env: LaneChangeEnv, points: np.ndarray) -> int:
     return occupied
 
 
+@pytest.mark.slow
 def test_ring_slots_match_sumo_getters(ring: LaneChangeEnv) -> None:
     occupied = checks = 0
     rng = np.random.default_rng(0)
@@ -127,6 +128,7 @@ def test_ring_slots_match_sumo_getters(ring: LaneChangeEnv) -> None:
     assert checks >= 200 and occupied >= 400  # the comparison really saw neighbours
 
 
+@pytest.mark.slow
 def test_urban_slots_match_sumo_getters(urban: LaneChangeEnv) -> None:
     _obs, info = urban.reset(seed=3)
     occupied = 0
@@ -354,6 +356,7 @@ def test_same_seed_same_trajectory() -> None:
     assert not all(np.array_equal(a, c) for a, c in zip(obs_a, obs_c))  # the seed matters
 
 
+@pytest.mark.slow
 def test_urban_same_seed_same_trajectory() -> None:
     """Urban episodes continue the running background traffic; a seeded reset replays it all."""
     runs = []
@@ -369,6 +372,7 @@ def test_urban_same_seed_same_trajectory() -> None:
     assert rew_a == rew_b
 
 
+@pytest.mark.slow
 def test_reset_memory_is_stable(ring: LaneChangeEnv) -> None:
     proc = psutil.Process()
     ring.reset(seed=0)
@@ -461,6 +465,7 @@ def test_traci_backend_matches_libsumo() -> None:
     assert any(p[0, LANE] for _o, _r, p in traci_seq) or traci_seq[-1][1] != 0.0  # the change happened
 
 
+@pytest.mark.slow
 def test_urban_reset_reloads_when_the_start_lane_stays_blocked(urban: LaneChangeEnv, monkeypatch) -> None:
     """A jam on the start lane must not end a long training run: the env reloads and retries."""
     urban.reset(seed=5)

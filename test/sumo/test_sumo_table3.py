@@ -17,6 +17,7 @@ from der_ros.train.runner import train
 REPO = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow
 def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> None:
     method = PAPER_METHODS[3]  # DER lambda = 0.9
     (spec,) = plan_runs(REPO / "config" / "ring.yaml", [method], [0], tmp_path / "runs", group="ring")
@@ -68,6 +69,7 @@ def test_short_ring_run_logs_events_and_table3_reports_them(tmp_path: Path) -> N
     assert [len(v["der0.9"]["eval_success"]) for v in json.loads(js2.read_text()).values()] == [2, 1]
 
 
+@pytest.mark.slow
 def test_urban_seeds_out_of_range_is_refused_before_any_run(tmp_path: Path) -> None:
     import subprocess
     import sys

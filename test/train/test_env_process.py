@@ -33,6 +33,7 @@ def episodes(run: Path) -> list[tuple[str, ...]]:
     return [(r["episode"], r["step"], r["return"], r["length"]) for r in read_csv(run / "episodes.csv")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("replay", [{"replay.kind": "uniform"}, {"replay.kind": "per"},
                                     {"replay.kind": "der", "replay.lam": 0.5}], ids=["uniform", "per", "der"])
 def test_the_worker_loop_equals_the_sequential_loop_bit_for_bit(tmp_path: Path, replay: dict) -> None:
@@ -95,6 +96,7 @@ def test_a_batch_that_holds_the_deferred_transition_completes_it_first() -> None
     assert misses > 0  # the check that a missing batch does not wait ran
 
 
+@pytest.mark.slow
 def test_resume_with_the_env_in_a_worker_continues_exactly(tmp_path: Path) -> None:
     """CartPole's env state is pickled out of the worker into the checkpoint and loaded back into it."""
     full_cfg = load_experiment_config(CARTPOLE, small_overrides(500, **OVERLAP))
@@ -106,6 +108,7 @@ def test_resume_with_the_env_in_a_worker_continues_exactly(tmp_path: Path) -> No
     assert episodes(tmp_path / "split") == episodes(tmp_path / "full")
 
 
+@pytest.mark.slow
 def test_a_bad_env_in_the_worker_is_a_config_error_and_writes_nothing(tmp_path: Path, capsys) -> None:
     run_dir = tmp_path / "run"
     code = cli.main(["train", "--config", str(CARTPOLE), "--set", "env.id=NoSuchEnv-v0", "--set",
@@ -115,6 +118,7 @@ def test_a_bad_env_in_the_worker_is_a_config_error_and_writes_nothing(tmp_path: 
     assert not run_dir.exists()
 
 
+@pytest.mark.slow
 def test_errors_in_the_worker_come_back_and_a_dead_worker_is_named() -> None:
     env = EnvProcess(EnvConfig(id="CartPole-v1"), seed=0)
     try:
@@ -138,6 +142,7 @@ def test_errors_in_the_worker_come_back_and_a_dead_worker_is_named() -> None:
     assert not env._proc.is_alive()
 
 
+@pytest.mark.slow
 def test_an_episode_end_brings_the_reset_along_and_close_leaves_no_process() -> None:
     env = EnvProcess(EnvConfig(id="CartPole-v1"), seed=0)
     pid = env.pid
@@ -162,7 +167,7 @@ def test_env_process_is_refused_for_a_bad_type() -> None:
 
 
 def test_auto_puts_only_the_sumo_envs_in_a_worker_and_only_with_two_cpus_per_run(monkeypatch) -> None:
-    from der_ros.experiments.backends.dispatch import local
+    from der_ros.experiments.backends import local
     from der_ros.train.env_process import CPUS_PER_RUN_ENV, MIN_STEPS_FOR_WORKER, cpus_per_run, use_env_process
 
     ring, cartpole = "der_ros/LaneChangeRing-v0", "CartPole-v1"

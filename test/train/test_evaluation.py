@@ -78,6 +78,7 @@ def test_episodes_do_not_depend_on_how_many_envs_run_them() -> None:
     assert len({e.ret for e in one}) > 1
 
 
+@pytest.mark.slow
 def test_evaluation_leaves_training_unchanged_and_is_written(tmp_path: Path) -> None:
     """Evaluations never touch the training env or the agent's RNGs: same training with or without them."""
     with_eval = train(load_experiment_config(CARTPOLE, _small(400, **{"train.eval_interval": 200,
@@ -101,6 +102,7 @@ def test_evaluation_leaves_training_unchanged_and_is_written(tmp_path: Path) -> 
     assert not (tmp_path / "plain" / "evaluation.json").exists() and np.isnan(without.eval_return)
 
 
+@pytest.mark.slow
 def test_resumed_run_redoes_no_evaluation_and_matches_the_full_run(tmp_path: Path) -> None:
     extra = {"train.eval_interval": 100, "train.eval_episodes": 3, "train.final_eval_episodes": 4}
     train(load_experiment_config(CARTPOLE, _small(300, **extra)), run_dir=tmp_path / "full")
@@ -114,6 +116,7 @@ def test_resumed_run_redoes_no_evaluation_and_matches_the_full_run(tmp_path: Pat
         assert full[key].tolist() == split[key].tolist()
 
 
+@pytest.mark.slow
 def test_the_evaluation_process_exits_when_its_trainer_is_killed(tmp_path: Path) -> None:
     """A SIGKILLed training process leaves no evaluation process behind (it polls its parent)."""
     import os

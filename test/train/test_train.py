@@ -62,6 +62,7 @@ def heldout_td_loss(agent: DQNAgent, batch: tuple[torch.Tensor, ...]) -> float:
         return float((y - q).square().mean())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["uniform", "per", "der"])
 def test_each_replay_kind_learns_on_cartpole(kind: str) -> None:
     """A few hundred CartPole steps: the TD loss on a held-out batch, against the frozen target
@@ -125,6 +126,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_runner_resume_continues_exactly(tmp_path: Path) -> None:
     cfg_full = load_experiment_config(CARTPOLE, small_overrides(600, **{"replay.kind": "der", "replay.lam": 0.5}))
     full = train(cfg_full, run_dir=tmp_path / "full")
@@ -191,6 +193,7 @@ def test_der_train_cli_writes_run_directory(tmp_path: Path) -> None:
     assert agent.steps == 300 and agent.replay_cfg.kind == "der"
 
 
+@pytest.mark.slow
 def test_a_burst_of_ctrl_c_is_one_stop_and_the_checkpoint_is_written(tmp_path: Path) -> None:
     """The same Ctrl-C can arrive more than once (a terminal signals the whole group, a suite's backend
     forwards it to its runs): signals within 2 s of the first do not abort the interrupted checkpoint
@@ -226,6 +229,7 @@ def test_a_burst_of_ctrl_c_is_one_stop_and_the_checkpoint_is_written(tmp_path: P
     assert summary["interrupted"] and DQNAgent.load(run_dir / "checkpoint.pt").steps == summary["steps"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_process", [False, True], ids=["in-process", "env-process"])
 def test_ctrl_c_saves_checkpoint_and_resume_finishes(tmp_path: Path, env_process: bool) -> None:
     """Ctrl-C as a terminal sends it: SIGINT to the whole process group (with the env in a worker, the
@@ -353,6 +357,7 @@ def test_make_env_kinds() -> None:
         make_env("NoSuchEnv-v0", seed=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env_process", [False, True], ids=["in-process", "env-process"])
 def test_runner_on_sumo_ring_env(tmp_path: Path, env_process: bool) -> None:
     """`der_ros/...` ids go through make_env (importing sumo_bridge); a short DER run on the ring, with the

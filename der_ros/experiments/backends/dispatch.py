@@ -22,8 +22,8 @@ from typing import Any
 from der_ros.experiments.backends.artifacts import ARTIFACT_LEVELS
 from der_ros.experiments.backends.base import Backend, BackendError, EventSink, RunEvent, RunFailedError
 from der_ros.experiments.backends.local import LocalBackend
-from der_ros.experiments.backends.suite_progress import SuiteProgress
 from der_ros.experiments.backends.ray_cluster import RayBackend
+from der_ros.experiments.backends.suite_progress import SuiteProgress
 from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError, _finished, _resolve
 
 __all__ = [
