@@ -6,7 +6,7 @@ are the same bytes. The layout is ``visualization_msgs/msg/MarkerArray`` of ROS 
 CDR, little endian (encapsulation ``00 01 00 00``), every field in declaration order, aligned to its
 size relative to the end of the encapsulation header, padding zeroed: what rosbags' serialiser
 produces, byte for byte, and what rclpy decodes into the same message (Fast CDR leaves padding
-bytes unset, so its own bytes differ there only; ``test/test_scene.py`` checks both). What a marker
+bytes unset, so its own bytes differ there only; ``test/sumo/test_scene.py`` checks both). What a marker
 means is the contract's
 (:mod:`der_ros.contract`: namespaces, roles, colours); :func:`der_ros.contract.parse_vehicle_markers`
 reads them back from rclpy and rosbags messages alike: meaning, parsers and encoders are this one module.
