@@ -1,7 +1,8 @@
 """Shared pytest set-up.
 
-- The helper modules (``ros_harness``, ``ray_helpers``, ``bag_helpers``) live at ``test/``; the tests
-  live in folders by layer (``test/replay``, ``test/nodes``...), so ``test/`` goes on ``sys.path``.
+- The helper modules (``ros_harness``, ``ray_helpers``, ``bag_helpers``, ``ros_messages``) live at
+  ``test/``; the tests live in folders by layer (``test/replay``, ``test/nodes``...): ``test/`` and
+  its folders go on ``sys.path``.
 - Tiers (markers registered in ``pyproject.toml``, ``--strict-markers``): every test that uses the
   ROS harness's fixtures (``ros_graph``, ``ros_domain``: real node processes on their own
   ``ROS_DOMAIN_ID``) is marked ``ros`` here, automatically; tests that start ROS another way carry
@@ -20,8 +21,12 @@ from pathlib import Path
 import pytest
 
 TEST_ROOT = Path(__file__).resolve().parent
-if str(TEST_ROOT) not in sys.path:
-    sys.path.insert(0, str(TEST_ROOT))
+# the helpers, and the layer folders: a few tests reuse another test module's helpers
+# (``from test_scene import check_against_libsumo``), also when that folder is not being collected
+_LAYERS = sorted(p for p in TEST_ROOT.iterdir() if p.is_dir() and p.name.isidentifier() and not p.name.startswith("_"))
+for _folder in [TEST_ROOT, *_LAYERS]:
+    if str(_folder) not in sys.path:
+        sys.path.insert(0, str(_folder))
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("RAY_AUTH_MODE", "token")
