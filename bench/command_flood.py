@@ -70,7 +70,7 @@ def _stop(proc: subprocess.Popen) -> None:
 
 def run(steps: int, flooders: int, kind: str, timeout: float, workdir: Path) -> dict:
     """One graph run under ``flooders`` flooders of ``kind``; the bridge's counters."""
-    from der_ros.graph.runner import reserve_domain_id, ros_environment
+    from der_ros.graph.supervisor import reserve_domain_id, ros_environment
 
     lease = reserve_domain_id()
     env = ros_environment(lease.domain_id)

@@ -124,7 +124,7 @@ def scene_cost(steps: int, network: str = "ring") -> dict:
     medians over blocks, so a burst of load on the shared machine does not decide the figure."""
     import statistics
 
-    from der_ros.bag.scene_cdr import vehicle_markers_cdr
+    from der_ros.contract import vehicle_markers_cdr
     from sumo_bridge.lane_change_env import LaneChangeEnv
     from sumo_bridge.scenario import ScenarioConfig
 
@@ -170,7 +170,7 @@ def _param_args(params: dict) -> list[str]:
 def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, markers: bool = True,
               record: bool = False) -> dict:  # fmt: skip
     """Start (recorder +) agent + bridge, wait for the bridge to finish, return its summary."""
-    from der_ros.graph.runner import reserve_domain_id
+    from der_ros.graph.supervisor import reserve_domain_id
 
     lease = reserve_domain_id()  # same lock files as the test harness: never a shared domain
     env = dict(os.environ, ROS_DOMAIN_ID=str(lease.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

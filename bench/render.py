@@ -1,11 +1,11 @@
-"""Benchmark: ``der replay render`` of a 40-step episode against the episode's own simulated time.
+"""Benchmark: ``der bag render`` of a 40-step episode against the episode's own simulated time.
 
 A person watching an episode should not wait longer than it lasted. For the ring and the urban
 network, records one 40-decision episode (20 simulated seconds; keep lane, one change left at
 step 4) the way ``der graph`` records its greedy episode
-(:func:`der_ros.bag.episode_recording.record_episode`), then renders it ``--repeat`` times to a
-GIF and once to an MP4 (:func:`der_ros.bag.render.render_bag`), and times the parts of the best
-GIF run: reading the scene from the bag (:func:`der_ros.bag.scene_frames.read_scene`), drawing the
+(:func:`der_ros.offline.episode_recording.record_episode`), then renders it ``--repeat`` times to a
+GIF and once to an MP4 (:func:`der_ros.offline.render.render_bag`), and times the parts of the best
+GIF run: reading the scene from the bag (:func:`der_ros.offline.scene_frames.read_scene`), drawing the
 frames, quantising + writing. Peer: the episode's simulated time (the ratio is render seconds per
 simulated second; target well under 1).
 
@@ -27,7 +27,7 @@ from pathlib import Path
 
 def record(network: str, steps: int, path: Path) -> float:
     """Record the episode; returns its simulated seconds."""
-    from der_ros.bag.episode_recording import record_episode
+    from der_ros.offline.episode_recording import record_episode
     from sumo_bridge.lane_change_env import LaneChangeEnv
     from sumo_bridge.scenario import ScenarioConfig
 
@@ -43,10 +43,10 @@ def record(network: str, steps: int, path: Path) -> float:
 
 def parts(bag: Path, out: Path) -> dict[str, float]:
     """The render split into read / draw / write (same calls as render_bag)."""
-    from der_ros.bag.animation import write_animation
     from der_ros.bag.reader import BagReader
-    from der_ros.bag.render import PALETTE, Caption, RenderOptions, _font, draw_frame, frame_view
-    from der_ros.bag.scene_frames import read_scene
+    from der_ros.offline.animation import write_animation
+    from der_ros.offline.render import PALETTE, Caption, RenderOptions, _font, draw_frame, frame_view
+    from der_ros.offline.scene_frames import read_scene
 
     t0 = time.perf_counter()
     recording = read_scene(BagReader(bag))
@@ -71,7 +71,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="GIF renders per network (best counts)")
     parser.add_argument("--quick", action="store_true", help="ring only, one repeat")
     args = parser.parse_args()
-    from der_ros.bag.render import render_bag
+    from der_ros.offline.render import render_bag
 
     repeat = 1 if args.quick else args.repeat
     work = Path(tempfile.mkdtemp(prefix="der_bench_render_"))

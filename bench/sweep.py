@@ -34,7 +34,7 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 if "RAY_AUTH_MODE" not in os.environ:  # a token for this run only, not written to ~/.ray (read when ray is imported)
     os.environ.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(32))
 
-from der_ros.experiments.backends import LocalBackend, RayBackend, run_specs  # noqa: E402
+from der_ros.experiments.backends.dispatch import LocalBackend, RayBackend, run_specs  # noqa: E402
 from der_ros.experiments.run_compare import run_differences  # noqa: E402
 from der_ros.experiments.suite import methods_by_name, plan_runs  # noqa: E402
 

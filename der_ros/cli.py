@@ -23,12 +23,16 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "table2": ("der_ros.experiments.table2", "run the paper's Table 2 (Atari) protocol"),
     "table3": ("der_ros.experiments.table3", "reproduce the paper's Table 3 (SUMO ring and urban) over several seeds"),
     "baselines": ("der_ros.experiments.baselines", "evaluate the baselines (keep, immediate, gap acceptance, SUMO's model...) or tune gap acceptance"),
+    "evaluate": ("der_ros.experiments.evaluate_runs", "re-evaluate trained runs' checkpoints greedily on more evaluation seeds"),
     "sweep": ("der_ros.experiments.sweep", "run a grid of config overrides x seeds (tuning), ranked by greedy evaluation"),
     "graph": ("der_ros.graph.graph_cli", "run the ROS 2 graph: SUMO bridge, DER agent and MCAP recorder"),
-    "replay": ("der_ros.bag.replay_cli", "inspect, plot, export, train from and play recorded MCAP bags"),
+    "bag": ("der_ros.offline.bag_cli", "inspect, plot, export, train from, render and play recorded MCAP bags"),
     "bench": ("der_ros.bench_cli", "run a benchmark script from bench/"),
     "networks": ("sumo_bridge.network_cli", "build (or rebuild) the SUMO networks shipped with der_ros"),
 }
+#: old spelling -> subcommand (``der replay`` was the bag tools' name before issue 42: it read like the
+#: replay buffers of ``der_ros.replay``)
+ALIASES: dict[str, str] = {"replay": "bag"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_module, help_text) in SUBCOMMANDS.items():
-        sub.add_parser(name, help=help_text, add_help=False)
+        aliases = [old for old, new in ALIASES.items() if new == name]
+        sub.add_parser(name, help=help_text, add_help=False, aliases=aliases)
     return parser
 
 
@@ -53,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     if top.command is None:
         parser.print_help()
         return 2
+    top.command = ALIASES.get(top.command, top.command)
     module_name, help_text = SUBCOMMANDS[top.command]
     module = importlib.import_module(module_name)
     sub_parser = argparse.ArgumentParser(prog=f"der {top.command}", description=help_text)

@@ -2,7 +2,7 @@
 
 :mod:`der_ros.contract` holds the QoS of every topic as ROS-free :class:`~der_ros.contract.QosSpec`;
 this module is the one place that turns them into ``rclpy.qos.QoSProfile`` (for the nodes, the
-``der graph`` monitor and ``der replay play``) and turns a publisher's profile, seen through graph
+``der graph`` monitor and ``der bag play``) and turns a publisher's profile, seen through graph
 introspection, back into the rosbag2 spelling the recorder writes into a bag. Only modules that
 already need rclpy import it; the ROS-free cores never do.
 """

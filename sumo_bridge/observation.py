@@ -74,20 +74,20 @@ configs) a leader 0.8 m ahead but 3.7 m/s slower reads as an overlap, as it is o
 change. The default, 0, reads the gap now (urban.yaml uses it). config/ring.yaml uses h = 1 s (the
 gap rule's headway until its re-tuning on 2026-12-05): on 6,000 tuning situations per run it cut
 the ring DQN's caused collisions from 95 to 55 in 60,000 episodes and raised its success
-(results/tuning/ring_dqn.md, section "2026-12-05, third session"); judged on 1,800 situations per
+(research/tuning/ring_dqn.md, section "2026-12-05, third session"); judged on 1,800 situations per
 run, 0.5 s had shown no effect, too few to tell.
 
 The required-deceleration block is the safety quantity of gap-acceptance models such as MOBIL
 (Kesting, Treiber and Helbing 2007): how hard the ego must brake behind its new leader, or its new
 follower behind it, for a lane change to stay collision-free. On the ring it separates the outcome
 of a commanded change nearly in one threshold -- below ~6 m/s^2 almost every change succeeds,
-above ~8 m/s^2 almost every change collides (results/tuning/ring_dqn.md, tenth session) -- where
+above ~8 m/s^2 almost every change collides (research/tuning/ring_dqn.md, tenth session) -- where
 in (gap, rel_speed) the boundary is a curve the network must learn from the few changes tried near
 it: a leader 0.84 m ahead and 3.7 m/s slower needs 8.1 m/s^2 (collides), one 3.4 m ahead and
 8 m/s slower 9.4 m/s^2 (collides), one 3 m ahead and 3.7 m/s slower 2.3 m/s^2 (safe).
 The default, 0, leaves the block out, and every shipped config does: with it (scale 9 m/s^2) the
 ring's DQN caused more collisions on its tuning seeds, not fewer (12 against 2 on seeds 100-104,
-results/tuning/ring_dqn.md, tenth session).
+research/tuning/ring_dqn.md, tenth session).
 """
 
 from __future__ import annotations

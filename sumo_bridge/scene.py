@@ -2,9 +2,9 @@
 
 The observation holds the ego and six neighbour slots *relative to the ego*; a person watching
 an episode wants the whole scene in world coordinates. This module is the core of the bridge's
-``scene/vehicles`` and ``scene/road`` marker topics (:mod:`der_ros.contract`): the bridge node
-converts a :class:`Scene` to rclpy messages (:mod:`der_ros.nodes.msg_conversions`), offline tools
-to rosbags messages (:mod:`der_ros.bag.messages`), and both read the values from here.
+``scene/vehicles`` and ``scene/road`` marker topics: the bridge node and the offline tools turn a
+:class:`Scene` into the contract's CDR bytes (:mod:`der_ros.contract.scene`), reading the values
+from here.
 
 Where the poses come from: on traci a getter per vehicle is a round trip, so
 :class:`~sumo_bridge.lane_change_env.LaneChangeEnv` subscribes every vehicle to :data:`SCENE_VARS`

@@ -32,7 +32,7 @@ from typing import Any
 import pytest
 import yaml
 
-from der_ros.graph.runner import ManagedProcess, ProcessSpec, reserve_domain_id, ros_environment
+from der_ros.graph.supervisor import ManagedProcess, ProcessSpec, reserve_domain_id, ros_environment
 from der_ros.nodes.spin import BackgroundNode
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"

@@ -19,7 +19,7 @@ from der_ros import contract
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("der_ros", "sumo_bridge")
-CONTRACT = REPO / "der_ros" / "contract.py"
+CONTRACT = REPO / "der_ros" / "contract"
 CONTRACT_ROS = REPO / "der_ros" / "contract_ros.py"
 
 TOPIC_NAMES = {spec.name for spec in contract.TOPICS}
@@ -102,7 +102,7 @@ def contract_violations(path: Path) -> list[str]:
 
 
 def test_no_module_but_the_contract_spells_topics_qos_or_status_names() -> None:
-    files = [f for f in package_files() if f != CONTRACT]
+    files = [f for f in package_files() if CONTRACT not in f.parents]
     assert len(files) > 50
     violations = [v for f in files for v in contract_violations(f)]
     assert not violations, "spell these through der_ros.contract:\n" + "\n".join(violations)
@@ -133,18 +133,19 @@ LAYERS: dict[str, int] = {
     "der_ros.configuration": 0,
     "der_ros.contract": 0,
     "der_ros.replay": 1,
+    "der_ros.bag": 1,  # MCAP files alone
     "sumo_bridge": 1,
     "der_ros.agent": 2,
     "der_ros.train": 3,
-    "der_ros.bag": 4,
+    "der_ros.offline": 4,  # tools on recorded bags: stand on bag, contract and train
     "der_ros.experiments": 4,
     "der_ros.contract_ros": 5,  # the ROS edge: rclpy from here up
-    "der_ros.bag.play": 6,
+    "der_ros.offline.play": 6,
     "der_ros.nodes": 6,
     "der_ros.graph": 7,
 }
 #: entry points (``der`` and its subcommands): may import any layer, imported by nobody
-ENTRY_POINTS = {"der_ros.cli", "der_ros.bench_cli", "der_ros.bag.replay_cli", "der_ros.graph.graph_cli",
+ENTRY_POINTS = {"der_ros.cli", "der_ros.bench_cli", "der_ros.offline.bag_cli", "der_ros.graph.graph_cli",
                 "der_ros.train.train_cli", "sumo_bridge.network_cli"}
 ENTRY_LAYER = 8
 #: below this layer nothing may import ROS (the ROS-free cores)
@@ -280,7 +281,7 @@ def test_cores_import_without_rclpy() -> None:
     """Every ROS-free module (and the ROS-free entry points) imports with rclpy and the ROS message
     packages made unimportable, and none of them loads rclpy behind the scenes."""
     cores = sorted(m for m in all_modules() if layer(m) < ROS_LAYER or m in
-                   {"der_ros.cli", "der_ros.bag.replay_cli", "der_ros.train.train_cli", "sumo_bridge.network_cli"})
+                   {"der_ros.cli", "der_ros.offline.bag_cli", "der_ros.train.train_cli", "sumo_bridge.network_cli"})
     assert {"der_ros.contract", "der_ros.replay.double_replay", "der_ros.agent.online", "der_ros.bag.reader",
             "sumo_bridge.lane_change_env", "der_ros.train.runner", "der_ros.experiments.suite"} <= set(cores)
     code = textwrap.dedent(f"""
@@ -307,3 +308,18 @@ def test_cores_import_without_rclpy() -> None:
     proc = subprocess.run([sys.executable, "-c", code_node], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode != 0 and "is blocked" in proc.stderr
+
+
+def test_the_product_does_not_import_research() -> None:
+    """research/ lives beside the product: no module of der_ros or sumo_bridge imports from it (and the
+    checker sees a research import when there is one)."""
+    modules = all_modules()
+    wrong = [f"{m}:{line} imports {name}" for m, path in modules.items()
+             for name, line, _top in imports_of(path, modules) if name.split(".")[0] == "research"]  # fmt: skip
+    assert not wrong, "\n".join(wrong)
+    sample = REPO / "der_ros" / "_research_check_sample.py"
+    sample.write_text("def f():\n    from research.tuning import compare_arms\n    return compare_arms\n")
+    try:
+        assert [n for n, _, _ in imports_of(sample, modules)] == ["research.tuning"]
+    finally:
+        sample.unlink()

@@ -257,7 +257,7 @@ class DQNAgent:
 
         With the MLP and the squared loss the gradient is computed by :class:`MLPBackward`
         (autograd's own kernels, without autograd's bookkeeping; bit-identical results), else by
-        autograd. Both paths give the same numbers (``test/test_agent.py`` checks them against a
+        autograd. Both paths give the same numbers (``test/agent/test_agent.py`` checks them against a
         plain autograd step).
         """
         batch = self.replay.sample(self.cfg.batch_size)

@@ -10,7 +10,7 @@ both measured in one process on the shared 2-core machine under load (bench/READ
 
 How it stays exact: every gradient is computed with the kernel autograd itself calls, on
 operands of the same memory layout, in the same order, so the results are bit-identical (checked
-against a plain autograd step by ``test/test_agent.py``). The parameters are used as detached
+against a plain autograd step by ``test/agent/test_agent.py``). The parameters are used as detached
 views, so none of this records an autograd graph and no ``no_grad`` context is needed. For
 ``out = F.linear(x, W, b)``, which is ``addmm(b, x, W.t())`` for 2-D inputs, autograd's addmm
 backward computes

@@ -31,7 +31,7 @@ class RecorderConfig:
     all_topics: bool = param(False, "also record every topic discovered in the graph (except exclude_topics)")
     record_scene: bool = param(
         True, "record the scene marker topics (scene/vehicles, scene/road) when they are in topics; false leaves "
-        "them out (about 6 kB per ring step, 50 kB per urban step), and der replay render then has nothing to draw")
+        "them out (about 6 kB per ring step, 50 kB per urban step), and der bag render then has nothing to draw")
     exclude_topics: list[str] = param(
         default_factory=lambda: ["/rosout", "/parameter_events"],
         help="absolute topic names never recorded with all_topics",

@@ -42,7 +42,7 @@ import numpy as np
 import yaml
 
 from der_ros.configuration import ConfigError, read_yaml_mapping
-from der_ros.experiments.report import write_markdown
+from der_ros.experiments.table_report import write_markdown
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import (
@@ -256,7 +256,7 @@ def run_baselines(jobs: Sequence[BaselineJob], n_jobs: int | None = None) -> dic
 
 
 #: the grid of :func:`tune_gap_acceptance` (metres, metres, seconds). Zero margins are in it: on the
-#: ring a rule with none and a 0.5 s headway still causes no collision (results/tuning/ring_dqn.md).
+#: ring a rule with none and a 0.5 s headway still causes no collision (research/tuning/ring_dqn.md).
 GAP_GRID = {"lead_gap": (0.0, 0.5, 1.0), "follow_gap": (0.0, 1.0, 2.0), "time_headway": (0.25, 0.5, 1.0)}
 
 

@@ -30,8 +30,7 @@ import yaml
 from der_ros.configuration import ConfigError
 from der_ros.experiments.aggregate import final_evaluation, iqm_interval
 from der_ros.experiments.aggregate import iqm as iqm_point
-from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
-from der_ros.experiments.report import write_markdown
+from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.stats import average_score, max_moving_average
 from der_ros.experiments.suite import (
     Method,
@@ -40,6 +39,7 @@ from der_ros.experiments.suite import (
     load_result,
     plan_runs,
 )
+from der_ros.experiments.table_report import write_markdown
 from der_ros.train.config import add_set_argument, parse_assignments
 from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
 

@@ -34,10 +34,8 @@ from der_ros.experiments.aggregate import (
     probability_of_improvement,
     significance_sentence,
 )
-from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
+from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.baselines import BaselineJob, baseline_names, run_baselines
-from der_ros.experiments.plots import plot_eval_curves, plot_td_traces
-from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import average_score, max_moving_average
 from der_ros.experiments.suite import (
     RunResult,
@@ -51,6 +49,8 @@ from der_ros.experiments.suite import (
     suite_overrides,
     suite_seeds,
 )
+from der_ros.experiments.suite_plots import plot_eval_curves, plot_td_traces
+from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 from der_ros.train.config import load_experiment_config
 from der_ros.train.evaluation import EvalResult
 

@@ -23,9 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
-from der_ros.experiments.plots import plot_learning_curves, save_figure
-from der_ros.experiments.report import run_details, total_training_time, write_markdown
+from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean_of_last
 from der_ros.experiments.suite import (
     RunResult,
@@ -42,6 +40,8 @@ from der_ros.experiments.suite import (
     suite_overrides,
     suite_seeds,
 )
+from der_ros.experiments.suite_plots import plot_learning_curves, save_figure
+from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 
 __all__ = ["GAMES", "PAPER_TABLE2", "add_arguments", "run", "default_atari_jobs"]
 

@@ -46,7 +46,7 @@ from der_ros.experiments.aggregate import (
     probability_of_improvement,
     significance_sentence,
 )
-from der_ros.experiments.backends import add_backend_arguments, backend_from_args, run_specs
+from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.baselines import (
     DEFAULT_PARAMS_FILE,
     BaselineJob,
@@ -56,8 +56,6 @@ from der_ros.experiments.baselines import (
     run_baselines,
 )
 from der_ros.experiments.paired import PairedCounts, paired_counts
-from der_ros.experiments.plots import plot_eval_curves
-from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
     RunResult,
@@ -72,6 +70,8 @@ from der_ros.experiments.suite import (
     suite_overrides,
     suite_seeds,
 )
+from der_ros.experiments.suite_plots import plot_eval_curves
+from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 from der_ros.train.config import load_experiment_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, EvalResult
 

@@ -9,7 +9,7 @@ the node executables alone.
 Order: recorder first (so it is subscribed before any data flows), then agent, then bridge; the
 bridge waits for the agent, runs ``--steps`` decision steps and exits 0, after which the agent
 is stopped (it saves its checkpoint) and the recorder last (it finalises the bag). Then the trained
-agent is evaluated greedily (:mod:`der_ros.graph.evaluation`) and one greedy episode is recorded
+agent is evaluated greedily (:mod:`der_ros.graph.snapshot_evaluation`) and one greedy episode is recorded
 and rendered to ``plots/greedy_episode.gif`` (:mod:`der_ros.graph.greedy_episode`). Ctrl-C does
 the same stop sequence at any time. If a node dies, the others are stopped and ``der graph``
 exits 1 naming the node and showing the end of its log.
@@ -26,11 +26,18 @@ from pathlib import Path
 
 import yaml
 
-from der_ros.graph.evaluation import GraphEvaluator
 from der_ros.graph.greedy_episode import greedy_episode_gif
-from der_ros.graph.progress import Progress
-from der_ros.graph.report import bridge_summary, report, snapshot_from_bag, unanswered_run
-from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
+from der_ros.graph.run_progress import Progress
+from der_ros.graph.run_summary import bridge_summary, report, snapshot_from_bag, unanswered_run
+from der_ros.graph.snapshot_evaluation import GraphEvaluator
+from der_ros.graph.supervisor import (
+    ChildFailed,
+    ProcessSpec,
+    RunOutcome,
+    Supervisor,
+    reserve_domain_id,
+    ros_environment,
+)
 from der_ros.interrupts import interrupts_raise
 from der_ros.nodes.params import build_graph_params, load_params_file
 

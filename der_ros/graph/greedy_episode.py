@@ -7,8 +7,8 @@ LaneChangeEnv of the bridge's scenario -- the first episode of the final evaluat
 decisions and return (with ``commit_on_success`` switched off, so the film goes on to the horizon
 instead of stopping at the lane change). It runs in a spawned process (one libsumo simulation per
 process, and torch stays out of ``der graph``'s own process), which records the episode as the graph would
-(:func:`der_ros.bag.episode_recording.record_episode`: ``<run dir>/greedy_episode/``, a small bag)
-and renders it with ``der replay render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
+(:func:`der_ros.offline.episode_recording.record_episode`: ``<run dir>/greedy_episode/``, a small bag)
+and renders it with ``der bag render``'s renderer to ``<run dir>/plots/greedy_episode.gif``.
 A failure here is logged and the run's summary goes on without the GIF.
 """
 
@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from der_ros.agent.config import DQNConfig
-from der_ros.bag.episode_recording import record_episode
-from der_ros.bag.render import render_bag
-from der_ros.graph.evaluation import observation_shape, scenario_env_config
+from der_ros.graph.snapshot_evaluation import observation_shape, scenario_env_config
+from der_ros.offline.episode_recording import record_episode
+from der_ros.offline.render import render_bag
 from der_ros.train.config import EnvConfig
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy

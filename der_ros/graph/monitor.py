@@ -26,7 +26,7 @@ from der_ros.contract import (
     topic_spec,
 )
 from der_ros.contract_ros import qos_profile
-from der_ros.graph.progress import ProgressSnapshot
+from der_ros.graph.run_progress import ProgressSnapshot
 from der_ros.nodes.spin import BackgroundNode
 
 __all__ = ["GraphMonitor"]

@@ -8,7 +8,7 @@ transition rule and the episode accounting live in the ROS-free
 :class:`der_ros.agent.dqn.DQNAgent` and publishes.
 
 The state, the reward and the command are on the lockstep's round trip, so they are read and written
-as CDR bytes (:mod:`der_ros.bag.step_cdr_read`, :mod:`der_ros.bag.step_cdr`; the graph went from
+as CDR bytes (:mod:`der_ros.contract`, :mod:`der_ros.contract`; the graph went from
 ~0.8x to ~0.89x the in-process loop, ``bench/README.md``); bytes in any other valid encoding are
 decoded by rclpy and parsed by the contract, which names what is wrong with a bad message.
 
@@ -51,8 +51,6 @@ from std_srvs.srv import SetBool, Trigger
 
 from der_ros.agent.divergence import LearnerDiverged, diverged_path
 from der_ros.agent.online import OnlineLearner
-from der_ros.bag.step_cdr import command_cdr
-from der_ros.bag.step_cdr_read import read_reward_cdr, read_state_cdr
 from der_ros.contract import (
     COMMAND,
     EPISODE,
@@ -61,9 +59,12 @@ from der_ros.contract import (
     REWARD,
     STATE,
     cloud_to_points,
+    command_cdr,
     header_ns,
     parse_episode_events,
     parse_reward,
+    read_reward_cdr,
+    read_state_cdr,
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
@@ -161,7 +162,7 @@ class AgentNode(Node):
 
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
         self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
-        # raw CDR: the state and the reward are read without rclpy's message objects (bag/step_cdr_read.py)
+        # raw CDR: the state and the reward are read without rclpy's message objects (der_ros/contract/state.py, reward.py)
         self.create_subscription(PointCloud2, STATE, self._on_state, topic_qos(STATE), raw=True)
         self.create_subscription(Vector3Stamped, REWARD, self._on_reward, topic_qos(REWARD), raw=True)
         self.create_subscription(DiagnosticArray, EPISODE, self._on_episode, topic_qos(EPISODE))

@@ -6,7 +6,7 @@ points), then ``/clock``, ``ego/odom``, ``scene/vehicles`` (every vehicle as a m
 on) and, on episode start/end, ``episode``; it applies the actions
 arriving on ``lane_change_cmd``. With ``markers`` on it also publishes the road once on the
 latched ``scene/road``. The markers come from the env's scene (:mod:`sumo_bridge.scene`), encoded
-by :mod:`der_ros.bag.scene_cdr` and published as CDR bytes (a tenth of the cost of building rclpy
+by :mod:`der_ros.contract` and published as CDR bytes (a tenth of the cost of building rclpy
 messages, figures there); they go out after ``state``, while the agent computes its answer.
 
 Step keys: the bridge counts every published state with a global counter k (across episodes,
@@ -62,9 +62,6 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
-from der_ros.bag.step_cdr import clock_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.bag.step_cdr_read import read_command_cdr
 from der_ros.contract import (
     BRIDGE_DIAGNOSTICS,
     BRIDGE_STATUS,
@@ -81,8 +78,15 @@ from der_ros.contract import (
     SCENE_VEHICLES,
     STATE,
     cdr_command_sender,
+    clock_cdr,
     episode_values,
+    odometry_cdr,
     parse_command,
+    read_command_cdr,
+    reward_cdr,
+    road_markers_cdr,
+    state_cdr,
+    vehicle_markers_cdr,
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc
@@ -93,7 +97,7 @@ from der_ros.nodes.queue_drain import take_queued
 from der_ros.nodes.spin import run_node
 from sumo_bridge.lane_change_env import LaneChangeEnv
 from sumo_bridge.lockstep import CommandGate, Verdict
-from sumo_bridge.observation import field_index
+from sumo_bridge.observation import POINT_FIELDS, field_index
 
 __all__ = ["BridgeNode", "LatencyStats", "main", "parameter_sections"]
 
@@ -257,7 +261,7 @@ class BridgeNode(Node):
     def _publish_step(
         self, stamp: int, reward: float, terminated: bool, truncated: bool, info: dict, applied: int | None
     ) -> None:
-        # CDR bytes (bag/step_cdr.py): reward and state are on the round trip's critical path, so they go
+        # CDR bytes (der_ros/contract/): reward and state are on the round trip's critical path, so they go
         # first; /clock, the odometry and the scene follow while the agent computes its answer
         self.pub_reward.publish(reward_cdr(stamp, reward, terminated, truncated, applied))
         if not (terminated or truncated):
@@ -266,7 +270,7 @@ class BridgeNode(Node):
             if self.cfg.mode == "lockstep":
                 self._timeout_timer.reset()
                 self._deadline = time.monotonic() + self.cfg.command_timeout
-        self.pub_state.publish(state_cdr(info["points"], stamp))
+        self.pub_state.publish(state_cdr(info["points"], stamp, fields=POINT_FIELDS))
         self.pub_clock.publish(clock_cdr(stamp))
         pos = info.get("position")
         if pos is not None:
@@ -350,7 +354,7 @@ class BridgeNode(Node):
         if early is not None:
             self._log_reject(early, f"sender={sender!r}")
             return
-        command = read_command_cdr(data)  # little-endian plain CDR read directly (bag/step_cdr_read.py)
+        command = read_command_cdr(data)  # little-endian plain CDR read directly (der_ros/contract/command.py)
         if command is None:  # another encoding: rclpy decodes it
             try:
                 command = parse_command(deserialize_message(data, Joy))

@@ -1,29 +1,37 @@
 """Builders of the graph's rclpy messages from core data (numpy arrays, dicts, nanoseconds).
 
-The layouts are the graph contract (:mod:`der_ros.contract`); the parsers that read them back
-live there too, ROS-free, so offline tools and the nodes decode with the same code. Every
-function here is pure (no node, no clock), so round trips are unit-testable.
-
-Hot-path notes: the PointCloud2 field layout is computed once per field tuple (cached), the
-payload is ``ndarray.tobytes()`` (no per-point Python loop).
+The layouts are the graph contract's (:mod:`der_ros.contract`), spelled there once: the state,
+odometry, reward, command and clock built here are rclpy's decoding of the contract's own CDR
+bytes; the episode events and metrics (DiagnosticArray) are built from the contract's key/values
+(:func:`der_ros.contract.format_value`). Every function here is pure (no node, no clock), so round
+trips are unit-testable.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
-from functools import lru_cache
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Joy, PointCloud2, PointField
+from sensor_msgs.msg import Joy, PointCloud2
 from std_msgs.msg import Header
 
-from der_ros.contract import EPISODE_COLLISION, EPISODE_STATUS, METRICS_STATUS, applied_action_frame, format_value
+from der_ros.contract import (
+    EPISODE_COLLISION,
+    EPISODE_STATUS,
+    METRICS_STATUS,
+    clock_cdr,
+    command_cdr,
+    format_value,
+    odometry_cdr,
+    reward_cdr,
+    state_cdr,
+)
 from sumo_bridge.observation import POINT_FIELDS
 
 __all__ = [
@@ -57,43 +65,21 @@ def _header(stamp_ns: int, frame_id: str) -> Header:
 
 def make_clock(stamp_ns: int) -> Clock:
     """rosgraph_msgs/Clock at ``stamp_ns``."""
-    return Clock(clock=ns_to_time(stamp_ns))
+    return deserialize_message(clock_cdr(stamp_ns), Clock)
 
 
-# -- state: points <-> PointCloud2 ----------------------------------------------------------------
-@lru_cache(maxsize=8)
-def _field_layout(names: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
-    return tuple((n, 8 * i) for i, n in enumerate(names))
-
-
-def _point_fields(names: tuple[str, ...]) -> list[PointField]:
-    # Fresh PointField objects per message (~10 us): rosidl messages are mutable, and a cached
-    # list shared between messages would let one consumer's edit corrupt every later message.
-    return [PointField(name=n, offset=o, datatype=PointField.FLOAT64, count=1) for n, o in _field_layout(names)]
-
-
+# -- state, ego odometry, reward, command: decoded from the contract's own bytes ----------------------
+# The layouts are spelled once, in der_ros.contract (state, odometry, reward, command): these builders
+# hand rclpy the bytes of the contract's encoders, so an rclpy message built here is by construction
+# what the bridge and the agent publish. Not on any hot path (the nodes publish the bytes themselves).
 def points_to_cloud(
     points: np.ndarray, stamp_ns: int, frame_id: str = "ego", fields: tuple[str, ...] = POINT_FIELDS
 ) -> PointCloud2:
-    """A ``(n, len(fields))`` float64 array -> an unordered (height 1) PointCloud2, little endian."""
-    pts = np.ascontiguousarray(points, dtype="<f8")
-    if pts.ndim != 2 or pts.shape[1] != len(fields):
-        raise ValueError(f"points have shape {pts.shape}, expected (n, {len(fields)}) for fields {fields}")
-    step = 8 * len(fields)
-    return PointCloud2(
-        header=_header(stamp_ns, frame_id),
-        height=1,
-        width=pts.shape[0],
-        fields=_point_fields(tuple(fields)),
-        is_bigendian=False,
-        point_step=step,
-        row_step=step * pts.shape[0],
-        data=pts.tobytes(),
-        is_dense=True,
-    )
+    """A ``(n, len(fields))`` float64 array -> an unordered (height 1) PointCloud2, little endian
+    (:func:`der_ros.contract.state_cdr`)."""
+    return deserialize_message(state_cdr(points, stamp_ns, frame_id, fields=tuple(fields)), PointCloud2)
 
 
-# -- ego odometry ---------------------------------------------------------------------------------
 def make_odometry(
     stamp_ns: int,
     x: float,
@@ -103,54 +89,24 @@ def make_odometry(
     frame_id: str = "map",
     child_frame_id: str = "ego",
 ) -> Odometry:
-    """Ego pose and speed as nav_msgs/Odometry.
-
-    SUMO angles are degrees clockwise from north; ROS (REP 103) yaw is counter-clockwise from
-    the x axis (east), so ``yaw = radians(90 - angle)``. The twist is in the child (ego) frame:
-    ``linear.x`` is the forward speed.
-    """
-    msg = Odometry()
-    msg.header = _header(stamp_ns, frame_id)
-    msg.child_frame_id = child_frame_id
-    yaw = math.radians(90.0 - float(sumo_angle_deg))
-    msg.pose.pose.position.x = float(x)
-    msg.pose.pose.position.y = float(y)
-    msg.pose.pose.orientation.z = math.sin(yaw / 2.0)
-    msg.pose.pose.orientation.w = math.cos(yaw / 2.0)
-    msg.twist.twist.linear.x = float(speed)
-    return msg
+    """Ego pose and speed as nav_msgs/Odometry (:func:`der_ros.contract.odometry_cdr`: SUMO degrees
+    clockwise from north -> REP 103 yaw counter-clockwise from east; twist in the ego's frame)."""
+    return deserialize_message(odometry_cdr(stamp_ns, x, y, sumo_angle_deg, speed, frame_id, child_frame_id), Odometry)
 
 
-# -- reward ---------------------------------------------------------------------------------------
 def make_reward(
     stamp_ns: int, reward: float, terminated: bool, truncated: bool, applied_action: int | None = None
 ) -> Vector3Stamped:
-    """``reward`` message: x = reward on arriving in the state stamped ``stamp_ns``, y/z = flags.
-
-    ``applied_action`` (the action the bridge actually applied in the step that led here: the
-    agent's command, or the default after a timeout) goes into ``header.frame_id`` as
-    ``applied_action=<a>`` (:func:`der_ros.contract.applied_action_frame`); empty for an episode's
-    first state.
-    """
-    msg = Vector3Stamped()
-    msg.header = _header(stamp_ns, applied_action_frame(applied_action))
-    msg.vector.x = float(reward)
-    msg.vector.y = 1.0 if terminated else 0.0
-    msg.vector.z = 1.0 if truncated else 0.0
-    return msg
+    """``reward`` message (:func:`der_ros.contract.reward_cdr`): x = reward on arriving in the state
+    stamped ``stamp_ns``, y/z = flags, ``header.frame_id`` = the applied action ("" for an episode's
+    first state)."""
+    return deserialize_message(reward_cdr(stamp_ns, reward, terminated, truncated, applied_action), Vector3Stamped)
 
 
-# -- lane-change command --------------------------------------------------------------------------
 def make_command(stamp_ns: int, action: int, sender: str = "") -> Joy:
-    """``lane_change_cmd``: header.stamp = stamp of the answered state, buttons[0] = action.
-
-    ``header.frame_id`` carries the sender id the bridge locks onto (rclpy 7.1's MessageInfo
-    has no publisher GID; see docs/architecture.md).
-    """
-    msg = Joy()
-    msg.header = _header(stamp_ns, sender)
-    msg.buttons = [int(action)]
-    return msg
+    """``lane_change_cmd`` (:func:`der_ros.contract.command_cdr`): header.stamp = stamp of the answered
+    state, buttons[0] = action, ``header.frame_id`` = the sender id the bridge locks onto."""
+    return deserialize_message(command_cdr(stamp_ns, action, sender), Joy)
 
 
 # -- episode events -------------------------------------------------------------------------------

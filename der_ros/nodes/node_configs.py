@@ -45,7 +45,7 @@ class BridgeNodeConfig:
     diagnostics_every: int = param(200, "publish bridge/diagnostics every this many steps", low=1)
     map_frame: str = param("map", "frame_id of ego/odom and of the scene markers")
     markers: bool = param(
-        True, "publish the scene for RViz / Foxglove / der replay render: every vehicle on scene/vehicles each step "
+        True, "publish the scene for RViz / Foxglove / der bag render: every vehicle on scene/vehicles each step "
         "and the road once on scene/road (visualization_msgs/MarkerArray); costs SUMO position subscriptions and "
         "the encoding, see bench/graph.py")
     command_queue_depth: int = param(
