@@ -180,7 +180,7 @@ def skipped_summary(damaged: list[DamagedChunk]) -> dict[str, Any]:
     lost = [d.messages_lost for d in damaged]
     return {
         "chunks": len(damaged),
-        "bytes": sum(d.end - d.start for d in damaged),
+        "bytes": sum(d.bytes_lost for d in damaged),
         "messages_lost": None if any(n is None for n in lost) else sum(n for n in lost if n is not None),
         "ranges": [d.as_dict() for d in damaged],
     }
