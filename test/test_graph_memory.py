@@ -6,9 +6,11 @@ The RSS of a real long run is measured by ``bench/soak.py`` (figures in bench/RE
 
 from __future__ import annotations
 
+import ctypes
 import tracemalloc
 from collections import deque
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -88,3 +90,29 @@ def test_the_graph_monitor_holds_bounded_state_over_many_episodes(ros_domain: in
         assert snap.episodes == 10_000 and snap.steps == 20_000
     finally:
         monitor.close()
+
+
+def _rss_kb() -> int:
+    """This process's resident set (kB), after handing freed heap back to the kernel."""
+    ctypes.CDLL("libc.so.6").malloc_trim(0)
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+def test_the_bridge_latency_ring_is_resident_from_the_start() -> None:
+    """The bridge's round-trip ring takes its memory when it is made, not a page at a time as steps
+    fill it (8 bytes a step until full: the bridge's RSS grew with every step)."""
+    from der_ros.nodes.bridge_node import LatencyStats  # rclpy-free class in a node module
+
+    stats = LatencyStats(200_000)
+    before = _rss_kb()
+    for i in range(200_000):
+        stats.add(1_000_000 + i)
+    grown = _rss_kb() - before
+    assert grown < 400, f"RSS grew {grown} kB while 1.6 MB of round trips were written"
+    assert len(stats) == 200_000
+    for _ in range(200_000):  # a second lap: the ring holds the newest only
+        stats.add(5_000_000)
+    assert stats.percentiles_ms()["roundtrip_p50_ms"] == 5.0 and stats.percentiles_ms()["roundtrip_n"] == 200_000
