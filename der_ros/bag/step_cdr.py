@@ -33,7 +33,7 @@ from der_ros.bag.cdr import stamp_parts
 from der_ros.contract import applied_action_frame
 from sumo_bridge.observation import POINT_FIELDS
 
-__all__ = ["clock_cdr", "command_cdr", "reward_cdr", "state_cdr", "state_field_table", "odometry_cdr"]
+__all__ = ["clock_cdr", "command_cdr", "reward_cdr", "state_cdr", "state_field_table", "odometry_cdr", "tf_cdr", "ego_tf_cdr"]
 
 _FLOAT64 = 8  # sensor_msgs/PointField.FLOAT64
 
@@ -139,3 +139,18 @@ def odometry_cdr(stamp_ns: int, x: float, y: float, sumo_angle_deg: float, speed
     head += _pad(len(head) - 4, 4) + _string(child_frame_id)
     pose = _ODOM_POSE(float(x), float(y), 0.0, 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
     return head + _pad(len(head) - 4, 8) + pose + _COVARIANCE + _TWIST(float(speed), 0.0, 0.0, 0.0, 0.0, 0.0) + _COVARIANCE
+
+
+def tf_cdr(stamp_ns: int, translation: tuple[float, float, float], rotation: tuple[float, float, float, float],
+           frame_id: str = "map", child_frame_id: str = "ego") -> bytes:  # fmt: skip
+    """tf2_msgs/TFMessage with one TransformStamped ``frame_id -> child_frame_id`` (rotation x, y, z, w)."""
+    head = _ENCAPSULATION + _U32(1) + _stamp(stamp_ns) + _string(frame_id)
+    head += _pad(len(head) - 4, 4) + _string(child_frame_id)
+    return head + _pad(len(head) - 4, 8) + _ODOM_POSE(*(float(v) for v in translation), *(float(v) for v in rotation))
+
+
+def ego_tf_cdr(stamp_ns: int, x: float, y: float, sumo_angle_deg: float, frame_id: str = "map",
+               child_frame_id: str = "ego") -> bytes:  # fmt: skip
+    """The ``map -> ego`` transform of the ego pose :func:`odometry_cdr` publishes (same yaw rule)."""
+    yaw = math.radians(90.0 - float(sumo_angle_deg))
+    return tf_cdr(stamp_ns, (x, y, 0.0), (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)), frame_id, child_frame_id)

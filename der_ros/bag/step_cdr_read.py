@@ -28,7 +28,7 @@ from der_ros.bag.cdr import NS as _NS
 from der_ros.bag.step_cdr import state_field_table
 from der_ros.contract import Reward, points_from_buffer, reward_from_fields
 
-__all__ = ["read_state_cdr", "read_reward_cdr", "read_command_cdr"]
+__all__ = ["read_state_cdr", "read_reward_cdr", "read_command_cdr", "read_odometry_pose_cdr"]
 
 _STAMP_LEN = struct.Struct("<iII").unpack_from  # sec, nanosec, length of frame_id (with its NUL)
 _U32 = struct.Struct("<I").unpack_from
@@ -126,3 +126,30 @@ def read_command_cdr(data: bytes) -> tuple[int, list[int], list[float], str] | N
         return None
     buttons = list(struct.unpack_from(f"<{n_buttons}i", data, offset)) if n_buttons else []
     return stamp, buttons, axes, sender
+
+
+_POSE = struct.Struct("<7d").unpack_from  # position xyz, orientation xyzw
+
+
+def read_odometry_pose_cdr(data: bytes) -> tuple[int, str, str, tuple[float, ...]] | None:
+    """(stamp ns, frame_id, child_frame_id, (x, y, z, qx, qy, qz, qw)) of a little-endian plain-CDR
+    nav_msgs/Odometry (the pose only); None if the bytes are not one."""
+    head = _header(data)
+    if head is None:
+        return None
+    stamp, frame, q = head
+    q = _align(q, 4)
+    if q + 4 > len(data):
+        return None
+    (length,) = _U32(data, q)
+    end = q + 4 + length
+    if length < 1 or end > len(data) or data[end - 1] != 0:
+        return None
+    try:
+        child = data[q + 4:end - 1].split(b"\0", 1)[0].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    q = _align(end, 8)
+    if q + 56 > len(data):
+        return None
+    return stamp, frame, child, _POSE(data, q)
