@@ -11,7 +11,7 @@ in kB per 1,000 steps. Goal: <= 10 kB per 1,000 steps for every process.
 Prints a table and ends with one JSON line (per process: samples, rss_first_mb, rss_last_mb,
 kb_per_1000_steps). The run directory goes to ``--run-dir`` (default a temporary one, deleted).
 
-    .venv/bin/python bench/soak.py [--steps 20000] [--warmup 5000] [--capacity 2000] [--run-dir DIR]
+    .venv/bin/python bench/soak.py [--steps 20000] [--warmup 5000] [--capacity 2000] [--run-dir DIR] [-p NODE:NAME=VALUE]
 """
 
 from __future__ import annotations
@@ -92,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=5000, help="steps left out of the fit (default 5000)")
     ap.add_argument("--capacity", type=int, default=2000, help="replay capacity: full after this many steps")
     ap.add_argument("--run-dir", type=Path, default=None, help="keep the run here (default: a temporary dir)")
+    ap.add_argument("-p", "--param", action="append", default=[], metavar="NODE:NAME=VALUE",
+                    help="extra der graph parameter (repeatable), e.g. bridge_node:scenario.ring_rebuild_every=1000000")
     args = ap.parse_args(argv)
     if args.warmup >= args.steps:
         raise SystemExit(f"--warmup = {args.warmup} must be below --steps = {args.steps}")
@@ -104,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         run_dir = args.run_dir.resolve()
     cmd = [sys.executable, "-m", "der_ros.cli", "graph", "--steps", str(args.steps), "--run-dir", str(run_dir),
            "--no-plots", "--no-gif", "--eval-interval", "5000", "--eval-episodes", "10", "--final-eval-episodes", "0",
-           "-p", f"agent_node:replay.capacity={args.capacity}"]
+           "-p", f"agent_node:replay.capacity={args.capacity}", *(a for p in args.param for a in ("-p", p))]
     print("soak: " + " ".join(cmd), file=sys.stderr, flush=True)
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.monotonic()
@@ -137,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
     result: dict[str, object] = {"bench": "soak", "steps": args.steps, "warmup": args.warmup,
-                                 "replay_capacity": args.capacity, "wall_s": round(wall, 1), "processes": {}}
+                                 "replay_capacity": args.capacity, "params": args.param, "wall_s": round(wall, 1),
+                                 "processes": {}}
     rows = []
     for name, pts in sorted(samples.items()):
         name = "evaluation" if name.startswith("evaluation_") else name

@@ -59,7 +59,7 @@ def test_the_progress_counter_keeps_counts_and_recent_returns_only() -> None:
 
 
 @pytest.mark.ros
-def test_the_graph_monitor_holds_bounded_state_over_many_episodes(ros_domain: int) -> None:
+def test_the_graph_monitor_holds_bounded_state_over_many_episodes(ros_domain: int) -> None:  # noqa: F811
     """The runner's monitor fed 6,000 episodes through its own callbacks: no container it holds grows
     past the recent-returns window, and another 4,000 episodes allocate (almost) nothing that stays."""
     from der_ros.graph.monitor import GraphMonitor  # lazy: rclpy
