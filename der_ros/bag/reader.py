@@ -752,15 +752,18 @@ class BagReader:
             return
         fixed = bytearray(records)
         fixed[pos] ^= xor
+        # the record holding the damaged byte; and the whole chunk must frame (checked before anything is
+        # yielded: otherwise the chunk is skipped whole, its count from the message indexes)
         q, n = 0, len(fixed)
-        while True:  # the record holding the damaged byte
-            if q + 9 > n:
-                raise ParseError(f"CRC mismatch; one damaged byte at {data_at + pos}, but the records do not frame")
+        held: tuple[int, int, int] | None = None
+        while q + 9 <= n:
             op, ln = REC.unpack_from(fixed, q)
-            if q + 9 + ln > pos:
-                break
+            if held is None and q + 9 + ln > pos:
+                held = (op, q, q + 9 + ln)
             q += 9 + ln
-        r0, r1 = q, min(q + 9 + ln, n)
+        if held is None or q != n:
+            raise ParseError(f"CRC mismatch; one byte at {data_at + pos} would explain it, but the records do not frame")
+        op, r0, r1 = held
         if op != OP_MESSAGE:
             state.seen_damage = True  # a dropped channel record: its messages count as undeclared
         damage = DamagedChunk(f, at, end, f"CRC mismatch, placed on one byte of a record with opcode 0x{op:02x}",
