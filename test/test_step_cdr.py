@@ -11,8 +11,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, PointCloud2
 
-from der_ros.bag.step_cdr import clock_cdr, command_cdr, odometry_cdr, reward_cdr, state_cdr
-from der_ros.bag.step_cdr_read import read_command_cdr, read_reward_cdr, read_state_cdr
+from der_ros.bag.step_cdr import clock_cdr, command_cdr, ego_tf_cdr, odometry_cdr, reward_cdr, state_cdr, tf_cdr
+from der_ros.bag.step_cdr_read import read_command_cdr, read_odometry_pose_cdr, read_reward_cdr, read_state_cdr
 from der_ros.bag.writer import jazzy_typestore
 from der_ros.contract import cloud_to_points, header_ns, parse_command, parse_reward
 from der_ros.nodes import msg_conversions as mc
@@ -148,3 +148,29 @@ def test_read_command() -> None:
         fast = read_command_cdr(b)
         if fast is not None:  # nothing the fast path accepts is read differently by rclpy
             assert fast == _rclpy_or_error(lambda b=b: parse_command(deserialize_message(b, Joy)))
+
+
+@pytest.mark.parametrize(("frame", "child"), [("map", "ego"), ("", "é"), ("world", "")])
+def test_tf_and_the_odometry_pose_it_is_made_from(frame: str, child: str) -> None:
+    """The recorder's ``/tf`` (issue 45): rosbags decodes the TFMessage to the odometry's pose and
+    serialises it to the same bytes; the pose reader inverts ``odometry_cdr`` and refuses junk."""
+    import math
+
+    stamp = 987_654_321_123
+    odom = odometry_cdr(stamp, 12.5, -3.0, 30.0, 9.0, frame, child)
+    got = read_odometry_pose_cdr(odom)
+    assert got is not None
+    got_stamp, got_frame, got_child, pose = got
+    yaw = math.radians(60.0)
+    assert (got_stamp, got_frame, got_child) == (stamp, frame, child)
+    assert pose == pytest.approx((12.5, -3.0, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)))
+    tf = tf_cdr(got_stamp, pose[:3], pose[3:], got_frame, got_child)
+    assert tf == ego_tf_cdr(stamp, 12.5, -3.0, 30.0, frame, child)
+    msg = TS.deserialize_cdr(tf, "tf2_msgs/msg/TFMessage")
+    (tr,) = msg.transforms
+    assert (header_ns(tr), tr.header.frame_id, tr.child_frame_id) == (stamp, frame, child)
+    t, r = tr.transform.translation, tr.transform.rotation
+    assert (t.x, t.y, t.z, r.x, r.y, r.z, r.w) == pose
+    assert bytes(TS.serialize_cdr(msg, "tf2_msgs/msg/TFMessage")) == tf
+    for junk in (b"", odom[:30], b"\x00\x00\x00\x00" + odom[4:], odom[:70]):  # empty, cut, big-endian, cut in the pose
+        assert read_odometry_pose_cdr(junk) is None
