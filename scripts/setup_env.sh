@@ -5,6 +5,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=.venv
+# Foxglove's JavaScript libraries for test/test_interop_foxglove.py, pinned by test/js/package-lock.json
+# (node 20 + npm; the test runs `npm ci` itself if this could not)
+if command -v npm >/dev/null 2>&1 && [ ! -d test/js/node_modules/@mcap/core ]; then
+  echo "[setup] npm ci in test/js (Foxglove interop test)" >&2
+  (cd test/js && npm ci --no-audit --no-fund --loglevel=error >/dev/null) \
+    || echo "[setup] npm ci in test/js failed; test/test_interop_foxglove.py will try again" >&2
+fi
 stamp_src=$(cat requirements.txt requirements-dev.txt constraints.txt setup.py package.xml | sha256sum | cut -d' ' -f1)
 if [ -x "$VENV/bin/python" ] && [ "$(cat "$VENV/.der_stamp" 2>/dev/null)" = "$stamp_src" ]; then
   exit 0

@@ -11,7 +11,11 @@ What is ours around the MCAP record layer (:mod:`der_ros.bag.mcap_records`):
 * **Damaged chunks.** A chunk whose records fail their CRC, do not decompress or do not parse
   is skipped with one :class:`DamagedChunkWarning` naming its byte range and the messages lost
   (counted from the message indexes that follow it), and reading goes on with the next
-  chunk; :attr:`BagReader.damaged` lists what was skipped. In a finalised file the chunk index
+  chunk; :attr:`BagReader.damaged` lists what was skipped. An *uncompressed* chunk that fails its
+  CRC because of one damaged byte loses only the record holding that byte: the CRC places the
+  byte (:func:`der_ros.bag.mcap_records.locate_byte_error`), the record is dropped (counted) and
+  the chunk's other records, untouched, are read (a damaged CRC field loses nothing). Damage the
+  CRC cannot place on one byte, and any damaged compressed chunk, still costs the whole chunk. In a finalised file the chunk index
   of the summary also tells where a chunk ends when its own header is damaged. (A flipped byte
   used to make the whole bag unreadable.)
 * **Clear errors.** Damage outside chunks that cannot be stepped over (a record header in a bag
@@ -59,8 +63,10 @@ from der_ros.bag.mcap_records import (
     REC,
     U64,
     Chunk,
+    ChunkCrcError,
     ParseError,
     is_valid_opcode,
+    locate_byte_error,
     message_index_count,
     open_chunk,
     parse_channel,
@@ -114,15 +120,31 @@ class DamagedChunk:
     reason: str
     #: messages the chunk held (from the message indexes after it); None when the file has none
     messages_lost: int | None = None
+    #: the one damaged byte, when the CRC placed it (absolute offset); the rest of the chunk was read
+    damaged_at: int | None = None
+    #: byte range of the record dropped because it holds ``damaged_at`` (None: nothing dropped)
+    dropped: tuple[int, int] | None = None
+
+    @property
+    def bytes_lost(self) -> int:
+        """Bytes whose records were not read: the whole chunk, or the one dropped record."""
+        if self.damaged_at is None:
+            return self.end - self.start
+        return 0 if self.dropped is None else self.dropped[1] - self.dropped[0]
 
     def describe(self) -> str:
         lost = "an unknown number of" if self.messages_lost is None else str(self.messages_lost)
+        if self.damaged_at is not None:
+            what = "nothing dropped" if self.dropped is None else f"dropped the record at bytes {self.dropped[0]}-{self.dropped[1]}"
+            return (f"{self.path}: the chunk at bytes {self.start}-{self.end} has a damaged byte at {self.damaged_at} "
+                    f"({self.reason}); {what}, read the chunk's other records; {lost} messages lost")
         return (f"{self.path}: skipped the damaged chunk at bytes {self.start}-{self.end} ({self.reason}); "
                 f"{lost} messages lost")
 
     def as_dict(self) -> dict[str, Any]:
         return {"file": str(self.path), "start": self.start, "end": self.end, "reason": self.reason,
-                "messages_lost": self.messages_lost}
+                "messages_lost": self.messages_lost, "damaged_at": self.damaged_at,
+                "dropped": list(self.dropped) if self.dropped is not None else None}
 
 
 @dataclass(eq=False)
@@ -629,8 +651,17 @@ class BagReader:
                         state.parsed = 0
                         chunk = None
                         try:
-                            chunk = open_chunk(body, cut)
-                            yield from self._iter_chunk(f, pos, chunk, chans, keep, schemas, add_channel, messages, state)
+                            try:
+                                chunk = open_chunk(body, cut)
+                            except ChunkCrcError as crc_exc:
+                                located = locate_byte_error(crc_exc.records, crc_exc.crc)
+                                if located is None:
+                                    raise
+                                yield from self._iter_repaired(f, pos, b0 + ln, crc_exc, located, chans, keep, schemas,
+                                                               add_channel, messages, state)
+                            else:
+                                yield from self._iter_chunk(f, pos, chunk, chans, keep, schemas, add_channel, messages,
+                                                            state)
                         except ParseError as exc:
                             if chunk is not None and exc.at is not None:  # broke midway (a chunk without CRC)
                                 state.parsed = _count_messages(chunk.records, exc.at)
@@ -690,6 +721,59 @@ class BagReader:
         self._damaged_keys.add(key)
         self.damaged.append(damage)
         warnings.warn(damage.describe(), DamagedChunkWarning, stacklevel=4)
+
+    def _iter_repaired(
+        self,
+        f: Path,
+        at: int,
+        end: int,
+        exc: ChunkCrcError,
+        located: tuple[int, int],
+        chans: dict[int, Connection],
+        keep: dict[int, Connection | None],
+        schemas: dict[int, tuple[str, str, str]],
+        add_channel: Callable[[bytes | memoryview, int, int], None],
+        messages: bool,
+        state: _FileState,
+    ) -> Iterator[Message]:
+        """An uncompressed chunk with one damaged byte (``located``: position in the records and the
+        xor that restores the CRC): every record but the one holding the byte, as written.
+
+        The restored byte only serves to walk the record framing (it may be a record's length);
+        nothing restored is ever yielded: the record holding it is dropped and counted."""
+        pos, xor = located
+        records = exc.records
+        data_at = at + 9 + exc.data_offset
+        if pos < 0:  # byte -1 - pos of the stored CRC is the damaged one: every record is intact
+            yield from self._iter_chunk(f, at, Chunk(records, "", exc.data_offset, False), chans, keep, schemas,
+                                        add_channel, messages, state)
+            self._note_damage(DamagedChunk(f, at, end, "its CRC field is damaged, the records are intact",
+                                           messages_lost=0, damaged_at=at + 9 + exc.crc_at - 1 - pos), 0)
+            return
+        fixed = bytearray(records)
+        fixed[pos] ^= xor
+        # the record holding the damaged byte; and the whole chunk must frame (checked before anything is
+        # yielded: otherwise the chunk is skipped whole, its count from the message indexes)
+        q, n = 0, len(fixed)
+        held: tuple[int, int, int] | None = None
+        while q + 9 <= n:
+            op, ln = REC.unpack_from(fixed, q)
+            if held is None and q + 9 + ln > pos:
+                held = (op, q, q + 9 + ln)
+            q += 9 + ln
+        if held is None or q != n:
+            raise ParseError(f"CRC mismatch; one byte at {data_at + pos} would explain it, but the records do not frame")
+        op, r0, r1 = held
+        if op != OP_MESSAGE:
+            state.seen_damage = True  # a dropped channel record: its messages count as undeclared
+        damage = DamagedChunk(f, at, end, f"CRC mismatch, placed on one byte of a record with opcode 0x{op:02x}",
+                              messages_lost=int(op == OP_MESSAGE), damaged_at=data_at + pos,
+                              dropped=(data_at + r0, data_at + r1))
+        yield from self._iter_chunk(f, at, Chunk(records[:r0], "", exc.data_offset, False), chans, keep, schemas,
+                                    add_channel, messages, state)
+        yield from self._iter_chunk(f, at, Chunk(records[r1:], "", exc.data_offset + r1, False), chans, keep,
+                                    schemas, add_channel, messages, state)
+        self._note_damage(damage, 0)
 
     def _iter_chunk(
         self,

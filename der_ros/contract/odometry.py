@@ -12,11 +12,12 @@ import math
 import struct
 from typing import Any
 
-from der_ros.contract.cdr import cdr_string, header_cdr, header_ns, pad
+from der_ros.contract.cdr import U32, align, cdr_string, header_cdr, header_ns, pad, read_header_cdr
 
 __all__ = [
     "odometry_pose",
     "odometry_cdr",
+    "read_odometry_pose_cdr",
 ]
 
 
@@ -52,3 +53,31 @@ def odometry_cdr(stamp_ns: int, x: float, y: float, sumo_angle_deg: float, speed
     head += pad(len(head) - 4, 4) + cdr_string(child_frame_id)
     pose = _ODOM_POSE(float(x), float(y), 0.0, 0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
     return head + pad(len(head) - 4, 8) + pose + _COVARIANCE + _TWIST(float(speed), 0.0, 0.0, 0.0, 0.0, 0.0) + _COVARIANCE
+
+
+_POSE = struct.Struct("<7d").unpack_from  # position xyz, orientation xyzw
+_U32_AT = struct.Struct("<I").unpack_from
+
+
+def read_odometry_pose_cdr(data: bytes) -> tuple[int, str, str, tuple[float, ...]] | None:
+    """(stamp ns, frame_id, child_frame_id, (x, y, z, qx, qy, qz, qw)) of a little-endian plain-CDR
+    nav_msgs/Odometry (the pose only); None if the bytes are not one."""
+    head = read_header_cdr(data)
+    if head is None:
+        return None
+    stamp, frame, q = head
+    q = align(q, 4)
+    if q + 4 > len(data):
+        return None
+    (length,) = _U32_AT(data, q)
+    end = q + 4 + length
+    if length < 1 or end > len(data) or data[end - 1] != 0:
+        return None
+    try:
+        child = data[q + 4:end - 1].split(b"\0", 1)[0].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    q = align(end, 8)
+    if q + 56 > len(data):
+        return None
+    return stamp, frame, child, _POSE(data, q)

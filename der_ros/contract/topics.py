@@ -34,7 +34,7 @@ from der_ros.contract.reward import APPLIED_ACTION_PREFIX
 __all__ = [
     # topic names
     "CLOCK", "STATE", "REWARD", "ODOM", "EPISODE", "COMMAND", "METRICS", "BRIDGE_DIAGNOSTICS",
-    "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS",
+    "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS", "TF", "TF_MSGTYPE", "TF_QOS",
     # status names and episode events
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
@@ -58,6 +58,12 @@ SCENE_VEHICLES = "scene/vehicles"
 SCENE_ROAD = "scene/road"
 #: the topics a viewer (RViz, Foxglove, ``der bag render``) draws the scene from
 SCENE_TOPICS = (SCENE_VEHICLES, SCENE_ROAD)
+#: ``map -> ego`` (the ego's pose, the parent frame of ``state``) for viewers that place frames from
+#: tf (Foxglove's 3D panel, RViz). Written into the bags -- by the recorder from each ``ego/odom``
+#: (same stamp and pose), by the greedy-episode recorder from the env -- not published live: the
+#: nodes do not depend on the tf2_msgs package (rosbags knows the type without it).
+TF = "/tf"
+TF_MSGTYPE = "tf2_msgs/msg/TFMessage"
 
 # -- DiagnosticStatus names and episode events -----------------------------------------------------
 #: status name of every event on the ``episode`` topic
@@ -172,6 +178,8 @@ class QosSpec:
 RELIABLE_VOLATILE = QosSpec()
 #: ``rclpy.qos.qos_profile_sensor_data``.
 SENSOR_DATA = QosSpec(reliability="best_effort", depth=5)
+#: the QoS tf2's broadcasters offer on ``/tf`` (reliable, volatile, depth 100)
+TF_QOS = QosSpec(depth=100)
 
 
 def parse_qos_profiles(text: str | None) -> tuple[dict[str, Any], ...]:
@@ -352,7 +360,6 @@ TOPICS: tuple[TopicSpec, ...] = (
         meaning=f"one status named '{BRIDGE_STATUS}': sim_steps, steps_per_s, commands/* (accepted and every "
         "rejection), events/*, roundtrip_p50_ms / roundtrip_p99_ms; WARN once a command was rejected",
         units="counts, steps/s, ms",
-        record=False,
     ),
     TopicSpec(
         name=SCENE_VEHICLES,

@@ -9,7 +9,6 @@ Python) never blocks on ROS and the monitor never holds the GIL for long: it onl
 from __future__ import annotations
 
 import threading
-from collections import deque
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -18,7 +17,6 @@ from sensor_msgs.msg import Joy
 from der_ros.contract import (
     COMMAND,
     EPISODE,
-    EPISODE_START,
     METRICS,
     QosSpec,
     diagnostics_to_metrics,
@@ -26,7 +24,7 @@ from der_ros.contract import (
     topic_spec,
 )
 from der_ros.contract_ros import qos_profile
-from der_ros.graph.run_progress import ProgressSnapshot
+from der_ros.graph.run_progress import ProgressCounter, ProgressSnapshot
 from der_ros.nodes.spin import BackgroundNode
 
 __all__ = ["GraphMonitor"]
@@ -40,8 +38,7 @@ class GraphMonitor(BackgroundNode):
 
     def __init__(self, domain_id: int, namespace: str = "") -> None:
         self._lock = threading.Lock()
-        self._snap = ProgressSnapshot()
-        self.events: deque[tuple[int, str, dict[str, Any]]] = deque(maxlen=100_000)
+        self._counts = ProgressCounter()  # bounded memory: counters and the recent returns only
         # The runner handles Ctrl-C itself: rclpy must not install its own handlers.
         super().__init__(
             "der_graph_monitor",
@@ -61,33 +58,20 @@ class GraphMonitor(BackgroundNode):
 
     def _on_cmd(self, _msg: Any) -> None:
         with self._lock:
-            self._snap.steps += 1
+            self._counts.add_step()
 
     def _on_episode(self, msg: Any) -> None:
         events = parse_episode_events(msg)
         with self._lock:
-            for stamp, event, values in events:
-                self.events.append((stamp, event, dict(values)))
-                if event == EPISODE_START:
-                    continue
-                self._snap.episodes += 1
-                if event in self._snap.outcomes:
-                    self._snap.outcomes[event] += 1
-                ret = values.get("return")
-                if isinstance(ret, (int, float)):
-                    self._snap.returns.append(float(ret))
-                lc = values.get("lane_changes")
-                if isinstance(lc, (int, float)):
-                    self._snap.lane_changes += int(lc)
+            for _stamp, event, values in events:
+                self._counts.add_event(event, values)
 
     def _on_metrics(self, msg: Any) -> None:
         metrics = diagnostics_to_metrics(msg)
         with self._lock:
-            self._snap.metrics.update(metrics)
+            self._counts.add_metrics(metrics)
 
     def snapshot(self) -> ProgressSnapshot:
         """A copy of the counters (safe to read from the runner thread)."""
         with self._lock:
-            s = self._snap
-            return ProgressSnapshot(s.steps, s.episodes, list(s.returns), dict(s.outcomes), s.lane_changes,
-                                    dict(s.metrics))
+            return self._counts.snapshot()

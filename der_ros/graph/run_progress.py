@@ -10,6 +10,8 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,9 +22,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsed
 from rich.progress import Progress as RichProgress
 from rich.text import Text
 
-from der_ros.contract import EPISODE_ENDS
+from der_ros.contract import EPISODE_ENDS, EPISODE_START
 
-__all__ = ["ProgressSnapshot", "Progress"]
+__all__ = ["ProgressSnapshot", "ProgressCounter", "RECENT_RETURNS", "Progress"]
+
+#: episode returns the live counter keeps (the status line shows the mean of the last 10; the final
+#: counts and plots of a run come from its bag, see ``graph/run_summary.py``)
+RECENT_RETURNS = 1000
 
 
 @dataclass
@@ -56,6 +62,49 @@ class ProgressSnapshot:
         if h2 is not None:
             parts.append(f"H2 frac {h2:.2f}")
         return " | ".join(parts)
+
+
+class ProgressCounter:
+    """The live counts of a run, in memory bounded whatever the run's length (ROS-free).
+
+    Steps, episodes, outcomes and lane changes are counters; only the last :data:`RECENT_RETURNS`
+    returns are kept, and the metrics are the latest value per name. (It used to keep every
+    episode's event and return: about 1 kB per episode, ~255 kB per 1,000 steps of a ring run,
+    issue 45.) Not thread-safe: the monitor holds its lock around every call.
+    """
+
+    def __init__(self, recent: int = RECENT_RETURNS) -> None:
+        self.steps = 0
+        self.episodes = 0
+        self.returns: deque[float] = deque(maxlen=recent)
+        self.outcomes: dict[str, int] = dict.fromkeys(EPISODE_ENDS, 0)
+        self.lane_changes = 0
+        self.metrics: dict[str, float] = {}
+
+    def add_step(self) -> None:
+        self.steps += 1
+
+    def add_event(self, event: str, values: Mapping[str, Any]) -> None:
+        """One ``episode`` event (start events only mark the start: not counted)."""
+        if event == EPISODE_START:
+            return
+        self.episodes += 1
+        if event in self.outcomes:
+            self.outcomes[event] += 1
+        ret = values.get("return")
+        if isinstance(ret, (int, float)):
+            self.returns.append(float(ret))
+        lc = values.get("lane_changes")
+        if isinstance(lc, (int, float)):
+            self.lane_changes += int(lc)
+
+    def add_metrics(self, metrics: Mapping[str, float]) -> None:
+        self.metrics.update(metrics)
+
+    def snapshot(self) -> ProgressSnapshot:
+        """A copy (its ``returns`` are the recent ones only)."""
+        return ProgressSnapshot(self.steps, self.episodes, list(self.returns), dict(self.outcomes), self.lane_changes,
+                                dict(self.metrics))
 
 
 class Progress:

@@ -159,6 +159,8 @@ class AgentNode(Node):
         self._next_policy_step = self.agent.steps  # the first snapshot: the policy it starts with
         self._maybe_policy()
         self._last_metrics: dict[str, float] = {}
+        #: header stamp of the last agent/metrics message: a topic's stamps never go back (issue 45)
+        self._metrics_stamp = 0
 
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
         self.pub_metrics = self.create_publisher(DiagnosticArray, METRICS, topic_qos(METRICS))
@@ -335,7 +337,11 @@ class AgentNode(Node):
         metrics.update(extra)
         if stamp_ns is None:
             stamp_ns = self.get_clock().now().nanoseconds
-        self.pub_metrics.publish(mc.metrics_to_diagnostics(metrics, max(stamp_ns, 0), hardware_id=self.sender_id))
+        # Metrics are stamped with the step or episode event they follow, or with the clock (sim time:
+        # the last /clock received, which runs ahead of an episode event handled later): never earlier
+        # than the previous message's stamp, so viewers plotting by header stamp see a monotonic series.
+        self._metrics_stamp = max(int(stamp_ns), self._metrics_stamp)
+        self.pub_metrics.publish(mc.metrics_to_diagnostics(metrics, self._metrics_stamp, hardware_id=self.sender_id))
 
     def _maybe_checkpoint(self) -> None:
         every = self.cfg.checkpoint_every

@@ -18,6 +18,11 @@ subscribes, stamps and hands over bytes:
   runs with ``use_sim_time``), publish_time = the middleware's system receive timestamp.
   rosbag2 uses system receive time by default; with ``use_sim_time: false`` (our default) both
   are system time. The sim-time step key of every message is in its header stamp.
+* ``/tf``: for every ``ego/odom`` message recorded, the ``map -> ego`` transform of its pose
+  (same stamp and log time) is written on ``/tf`` (tf2_msgs/TFMessage), so that viewers placing
+  frames from tf (Foxglove's 3D panel) can put the ``state`` cloud (frame ``ego``) in the scene
+  (frame ``map``). Written by the recorder because no node publishes tf (the tf2_msgs package is
+  not a dependency; rosbags knows the type).
 * Durability of the bag: the writer flushes every ``flush_every_messages`` messages and a timer
   calls ``maybe_flush`` so at most ``flush_every_seconds`` of data can be lost to a SIGKILL;
   SIGINT/SIGTERM finalise the bag (footer, summary, metadata.yaml counts).
@@ -34,8 +39,10 @@ from typing import Any
 from rclpy.node import Node
 
 from der_ros.bag.recorder_config import RecorderConfig, default_bag_path
+from der_ros.contract import tf_cdr
+from der_ros.contract import read_odometry_pose_cdr
 from der_ros.bag.writer import BagWriter, BagWriterError, jazzy_typestore
-from der_ros.contract import SCENE_TOPICS, QosSpec, topic_by_name
+from der_ros.contract import ODOM, SCENE_TOPICS, TF, TF_MSGTYPE, TF_QOS, QosSpec, topic_by_name
 from der_ros.contract_ros import message_class, qos_profile, qos_to_rosbag2
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
@@ -85,6 +92,7 @@ class RecorderNode(Node):
         self._excluded = {self.resolve_topic_name(t) for t in cfg.exclude_topics}
         self._wanted = [self.resolve_topic_name(t) for t in cfg.topics if cfg.record_scene or not _is_scene(t)]
         self._received = 0
+        self._odom = self.resolve_topic_name(ODOM)  # its poses also go to /tf (map -> ego)
         self.finished = False  # the recorder runs until signalled (run_node protocol)
         for name in self._wanted:
             spec = topic_by_name(name)
@@ -155,8 +163,21 @@ class RecorderNode(Node):
                 self._skipped.add(topic)
                 return
         received = info.get("received_timestamp") if isinstance(info, dict) else None
-        self.writer.write(topic, now, data, publish_time_ns=int(received or time.time_ns()))
+        published = int(received or time.time_ns())
+        self.writer.write(topic, now, data, publish_time_ns=published)
         self._received += 1
+        if topic == self._odom:
+            self._write_tf(now, published, data)
+
+    def _write_tf(self, log_time: int, publish_time: int, odom: bytes) -> None:
+        """The ``map -> ego`` transform of an ``ego/odom`` message on ``/tf`` (module docstring)."""
+        pose = read_odometry_pose_cdr(odom)
+        if pose is None:  # not little-endian plain CDR: no transform for this one
+            return
+        stamp, frame, child, p = pose
+        if not self.writer.has_topic(TF):
+            self.writer.add_topic(TF, TF_MSGTYPE, TF_QOS)
+        self.writer.write(TF, log_time, tf_cdr(stamp, p[:3], p[3:], frame, child), publish_time_ns=publish_time)
 
     @property
     def subscribed_topics(self) -> dict[str, str]:

@@ -1,4 +1,4 @@
-"""``der bag`` (old spelling: ``der replay``): inspect, plot, export, train from, render and play recorded MCAP bags.
+"""``der bag`` (old spelling: ``der bag``): inspect, plot, export, train from, render and play recorded MCAP bags.
 
     der bag info BAG [--json]
     der bag plot BAG [BAG...] [--out DIR] [--label NAME ...]
@@ -180,7 +180,7 @@ def skipped_summary(damaged: list[DamagedChunk]) -> dict[str, Any]:
     lost = [d.messages_lost for d in damaged]
     return {
         "chunks": len(damaged),
-        "bytes": sum(d.end - d.start for d in damaged),
+        "bytes": sum(d.bytes_lost for d in damaged),
         "messages_lost": None if any(n is None for n in lost) else sum(n for n in lost if n is not None),
         "ranges": [d.as_dict() for d in damaged],
     }
@@ -201,8 +201,11 @@ def _run_info(args: argparse.Namespace) -> int:
     skipped = info["skipped"]
     if skipped["chunks"]:
         lost = "an unknown number of" if skipped["messages_lost"] is None else skipped["messages_lost"]
-        ranges = ", ".join(f"{Path(r['file']).name} bytes {r['start']}-{r['end']}" for r in skipped["ranges"])
-        print(f"DAMAGED:   {skipped['chunks']} chunk(s) skipped ({ranges}): {lost} messages lost")
+        whole = [r for r in skipped["ranges"] if r.get("damaged_at") is None]
+        placed = [r for r in skipped["ranges"] if r.get("damaged_at") is not None]
+        parts = [f"{Path(r['file']).name} bytes {r['start']}-{r['end']} skipped" for r in whole]
+        parts += [f"one byte at {r['damaged_at']}, {0 if r['dropped'] is None else 1} record dropped" for r in placed]
+        print(f"DAMAGED:   {skipped['chunks']} chunk(s) damaged ({', '.join(parts)}): {lost} messages lost")
     print(f"duration:  {info['duration_s']:.3f} s")
     rows = [(t["name"], t["type"], str(t["count"]), t["qos_text"]) for t in info["topics"]]
     _table(("topic", "type", "count", "QoS"), rows)

@@ -6,11 +6,18 @@ module runs it in a plain :class:`~sumo_bridge.lane_change_env.LaneChangeEnv` (n
 and writes what the bridge and agent would have published: the road once, then per step
 ``reward`` (naming the applied action) and ``state`` stamped t_k = k x step, the scene markers,
 the command answering the state, and the ``episode`` start/end events, as the contract's own
-bytes (:mod:`der_ros.contract`: the encoders the bridge and the agent publish with). ``der bag info/render/export`` read the result like any graph bag.
+bytes (:mod:`der_ros.contract`: the encoders the bridge and the agent publish with), and the
+``map -> ego`` transform on ``/tf`` (as the recorder writes it from ``ego/odom``). ``der bag
+info/render/export`` read the result like any graph bag.
+
+Times: header stamps are the sim-time step keys t_k, as in the graph; log times are wall-clock
+times (the recording's start plus t_k and the order offsets), as a recorder's receive times are,
+so viewers show the day the episode was recorded, not 1970.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +35,11 @@ from der_ros.contract import (
     SCENE_ROAD,
     SCENE_VEHICLES,
     STATE,
+    TF,
+    TF_MSGTYPE,
+    TF_QOS,
     command_cdr,
+    ego_tf_cdr,
     reward_cdr,
     road_markers_cdr,
     state_cdr,
@@ -41,7 +52,7 @@ __all__ = ["RecordedEpisode", "record_episode"]
 
 _NS = 1_000_000_000
 #: log-time offsets (ns) of one step's messages: the bridge's order, the agent's answer last
-_AT_REWARD, _AT_STATE, _AT_SCENE, _AT_COMMAND, _AT_END = 1_000, 2_000, 3_000, 4_000, 5_000
+_AT_REWARD, _AT_STATE, _AT_TF, _AT_SCENE, _AT_COMMAND, _AT_END = 1_000, 2_000, 2_500, 3_000, 4_000, 5_000
 
 
 @dataclass(frozen=True)
@@ -68,26 +79,32 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
     try:
         for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND):
             writer.add_topic(name, topic_spec(name).msgtype)
+        writer.add_topic(TF, TF_MSGTYPE, TF_QOS)
         obs, info = env.reset(seed=seed)
-        writer.write(SCENE_ROAD, 0, road_markers_cdr(env.lanes(), 0, frame_id))
-        writer.mark_episode(0, episode=episode, event=EPISODE_START, stamp_ns=0)
+        t0 = time.time_ns()  # log time of sim time 0 (module docstring)
+        writer.write(SCENE_ROAD, t0, road_markers_cdr(env.lanes(), 0, frame_id))
+        writer.mark_episode(t0, episode=episode, event=EPISODE_START, stamp_ns=0)
         speed_col = field_index("speed")
         k, ret, lane_changes, lane = 0, 0.0, 0, info.get("lane")
         speed_sum = 0.0
         reward, terminated, truncated, applied = 0.0, False, False, None
         while True:
             t = k * step_ns
-            writer.write(REWARD, t + _AT_REWARD, reward_cdr(t, reward, terminated, truncated, applied))
-            writer.write(STATE, t + _AT_STATE, state_cdr(info["points"], t, fields=POINT_FIELDS))
+            at = t0 + t
+            writer.write(REWARD, at + _AT_REWARD, reward_cdr(t, reward, terminated, truncated, applied))
+            writer.write(STATE, at + _AT_STATE, state_cdr(info["points"], t, fields=POINT_FIELDS))
+            pos = info.get("position")
+            if pos is not None:
+                writer.write(TF, at + _AT_TF, ego_tf_cdr(t, pos[0], pos[1], float(info.get("angle", 0.0)), frame_id))
             scene = env.scene()
-            writer.write(SCENE_VEHICLES, t + _AT_SCENE, vehicle_markers_cdr(scene.vehicles, scene.removed, t, frame_id))
+            writer.write(SCENE_VEHICLES, at + _AT_SCENE, vehicle_markers_cdr(scene.vehicles, scene.removed, t, frame_id))
             if terminated or truncated:
                 event = info.get("event") or (EPISODE_TIME_LIMIT if truncated else EPISODE_COLLISION)
-                writer.mark_episode(t + _AT_END, episode=episode, event=event, steps=k, ret=ret,
+                writer.mark_episode(at + _AT_END, episode=episode, event=event, steps=k, ret=ret,
                                     lane_changes=lane_changes, mean_speed=speed_sum / max(k, 1), stamp_ns=t)  # fmt: skip
                 return RecordedEpisode(Path(path), k, ret, str(event), lane_changes)
             action = int(act(obs))
-            writer.write(COMMAND, t + _AT_COMMAND, command_cdr(t, action, "der_ros.offline.episode_recording"))
+            writer.write(COMMAND, at + _AT_COMMAND, command_cdr(t, action, "der_ros.offline.episode_recording"))
             obs, r, terminated, truncated, info = env.step(action)
             reward, applied = float(r), action
             ret += reward

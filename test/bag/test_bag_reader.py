@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import tracemalloc
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,8 @@ import pytest
 from bag_helpers import TS, msg_cmd, msg_reward, write_foreign_bag
 from mcap.reader import make_reader
 
+from der_ros.bag import mcap_records
+from der_ros.bag.mcap_records import MSG
 from der_ros.bag.reader import BagError, BagReader, DamagedChunkWarning, TruncatedBagWarning
 from der_ros.bag.writer import BagWriter
 
@@ -199,19 +202,27 @@ def _read_with_warnings(bag: Path) -> tuple[list[tuple[str, int, bytes]], list[s
     return got, [str(w.message) for w in caught if issubclass(w.category, DamagedChunkWarning)], reader
 
 
-@pytest.mark.parametrize("compression", [None, "zstd"])
+@pytest.mark.parametrize(("compression", "flips"), [("zstd", 1), (None, 2)])
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
-def test_a_damaged_chunk_is_skipped_and_the_rest_is_read(tmp_path: Path, compression: str | None, seed: int) -> None:
-    """Seeded random damage inside one chunk: one warning naming the chunk's byte range and the
-    messages it held; every message of every other chunk is read, exactly."""
+def test_a_damaged_chunk_is_skipped_and_the_rest_is_read(tmp_path: Path, compression: str | None, flips: int,
+                                                         seed: int) -> None:  # fmt: skip
+    """Seeded random damage inside one chunk that the CRC cannot place on one byte (a compressed
+    chunk, or two damaged bytes): one warning naming the chunk's byte range and the messages it
+    held; every message of every other chunk is read, exactly."""
     bag = _small_bag(tmp_path / "full", n=1500, compression=compression, chunk_size=4096)
     by_chunk = _by_chunk(bag)
     ranges = list(by_chunk)
     assert len(ranges) >= 5
     rng = np.random.default_rng(seed)
     start, end = ranges[int(rng.integers(len(ranges)))]
-    pos = int(rng.integers(start + 9 + 28, end))  # past the record header and the time fields (no CRC on those)
-    bad = _damaged_copy(bag, tmp_path / "bad", pos, xor=int(rng.integers(1, 256)))
+    raw = bytearray(_mcap_file(bag).read_bytes())
+    # past the record header and the time fields (no CRC on those); two flips far enough apart
+    # that no single byte explains them
+    for pos in rng.choice(np.arange(start + 9 + 28, end), size=flips, replace=False):
+        raw[int(pos)] ^= int(rng.integers(1, 256))
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / _mcap_file(bag).name).write_bytes(bytes(raw))
     got, warned, reader = _read_with_warnings(bad)
     intact = [m for r in ranges if r != (start, end) for m in by_chunk[r]]
     assert got == intact
@@ -223,6 +234,68 @@ def test_a_damaged_chunk_is_skipped_and_the_rest_is_read(tmp_path: Path, compres
     # a second pass (der bag info scans, then exports) reports the same chunk once
     assert [(m.topic, m.log_time, bytes(m.data)) for m in reader.messages()] == intact
     assert len(reader.damaged) == 1
+
+
+def _with_offsets(bag: Path) -> list[tuple[str, int, bytes, int, int]]:
+    """Every message of an intact bag with the byte range of its record (an uncompressed bag)."""
+    return [(m.topic, m.log_time, bytes(m.data), m.offset, m.offset + 9 + MSG.size + len(m.data))
+            for m in BagReader(bag).messages()]
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_one_flipped_byte_in_an_uncompressed_chunk_costs_only_its_record(tmp_path: Path, seed: int) -> None:
+    """Issue 45, finding 5: a damaged byte in a message record of an uncompressed chunk (its CRC
+    fails) loses that one message; the chunk's other records are read as written, one warning says
+    where the byte is and counts the one message lost."""
+    bag = _small_bag(tmp_path / "full", n=1500, chunk_size=4096)
+    intact = _with_offsets(bag)
+    ranges = _chunks(bag)
+    rng = np.random.default_rng(seed)
+    start, end = ranges[int(rng.integers(1, len(ranges)))]
+    records = [(o0, o1) for *_m, o0, o1 in intact if start <= o0 < end]
+    assert len(records) > 20
+    o0, o1 = records[int(rng.integers(len(records)))]
+    pos = int(rng.integers(o0, o1))  # header, channel, times or payload of one message record
+    got, warned, reader = _read_with_warnings(_damaged_copy(bag, tmp_path / "bad", pos, xor=int(rng.integers(1, 256))))
+    assert got == [m[:3] for m in intact if m[3] != o0]
+    (damage,) = reader.damaged
+    assert (damage.start, damage.end, damage.damaged_at, damage.dropped, damage.messages_lost) == (start, end, pos,
+                                                                                                    (o0, o1), 1)
+    assert damage.bytes_lost == o1 - o0
+    assert len(warned) == 1 and f"damaged byte at {pos}" in warned[0] and "1 messages lost" in warned[0], warned
+    assert [(m.topic, m.log_time, bytes(m.data)) for m in reader.messages()] == got  # a second pass: same, one report
+    assert len(reader.damaged) == 1
+
+
+def test_a_flipped_crc_field_loses_nothing(tmp_path: Path) -> None:
+    """The damaged byte is in the chunk's stored CRC: every record is intact and read; reported, 0 lost."""
+    bag = _small_bag(tmp_path / "full", n=1500, chunk_size=4096)
+    intact = [m[:3] for m in _with_offsets(bag)]
+    start, end = _chunks(bag)[2]
+    for i in range(4):
+        pos = start + 9 + 24 + i  # record header, start/end times, uncompressed size, then the CRC
+        got, warned, reader = _read_with_warnings(_damaged_copy(bag, tmp_path / f"crc{i}", pos, xor=0x5A))
+        assert got == intact
+        (damage,) = reader.damaged
+        assert (damage.damaged_at, damage.dropped, damage.messages_lost, damage.bytes_lost) == (pos, None, 0, 0)
+        assert len(warned) == 1 and "0 messages lost" in warned[0]
+
+
+def test_locate_byte_error_finds_every_single_byte_and_refuses_two() -> None:
+    """The CRC walk against brute force on random records: every single damaged byte is placed with
+    its xor; two damaged bytes are not explained by one."""
+    rng = np.random.default_rng(7)
+    data = rng.integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    crc = zlib.crc32(data)
+    for pos in rng.integers(0, len(data), 40).tolist() + [0, len(data) - 1]:
+        xor = int(rng.integers(1, 256))
+        bad = bytearray(data)
+        bad[pos] ^= xor
+        assert mcap_records.locate_byte_error(bytes(bad), crc) == (pos, xor)
+        bad[(pos + 1000) % len(data)] ^= 0x81
+        assert mcap_records.locate_byte_error(bytes(bad), crc) is None
+    assert mcap_records.locate_byte_error(data, crc) is None
+    assert mcap_records.locate_byte_error(data, crc ^ 0x00A50000) == (-3, 0xA5)  # byte 2 of the stored CRC
 
 
 def test_a_damaged_chunk_header_is_stepped_over_with_the_chunk_index(tmp_path: Path) -> None:
@@ -245,6 +318,8 @@ def test_flipped_bytes_anywhere_skip_a_chunk_or_give_a_bag_error(tmp_path: Path)
     bag = _small_bag(tmp_path / "full", n=600, chunk_size=4096)
     by_chunk = _by_chunk(bag)
     original = [m for ms in by_chunk.values() for m in ms]
+    offsets = _with_offsets(bag)
+    placed = 0
     raw = _mcap_file(bag).read_bytes()
     rng = np.random.default_rng(0)
     positions = sorted(set(rng.integers(0, len(raw), 150).tolist()) | {0, 3, 8, 9, 17, 40, len(raw) - 4})
@@ -261,12 +336,18 @@ def test_flipped_bytes_anywhere_skip_a_chunk_or_give_a_bag_error(tmp_path: Path)
             continue
         if reader.damaged:
             skipped += 1
-            lost = {(c.start, c.end) for c in reader.damaged}
-            assert got == [m for r, ms in by_chunk.items() if r not in lost for m in ms], pos
+            lost = {(c.start, c.end) for c in reader.damaged if c.damaged_at is None}
+            dropped = {c.dropped[0] for c in reader.damaged if c.dropped is not None}
+            placed += sum(c.damaged_at is not None for c in reader.damaged)
+            # a chunk skipped whole, or one message record dropped (the one the CRC placed the flip in)
+            assert got == [m[:3] for m in offsets if m[3] not in dropped
+                           and not any(a <= m[3] < b for a, b in lost)], pos
+            assert len(got) + sum(c.messages_lost or 0 for c in reader.damaged) == len(original), pos
             assert len(warned) == len(reader.damaged)
         else:
             assert got == original, f"flip at {pos} changed the messages without a warning"
     assert skipped > len(positions) // 3  # most of the file is chunk data protected by CRCs
+    assert placed > len(positions) // 3  # and most of those flips cost one record, not the chunk
     assert errors + skipped < len(positions)
 
 

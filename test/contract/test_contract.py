@@ -173,7 +173,7 @@ def test_metrics_roundtrip_exact():
 def test_topic_table() -> None:
     names = [t.name for t in ct.TOPICS]
     assert [t.name for t in ct.TOPICS if t.record] == ct.default_record_topics()
-    assert ct.BRIDGE_DIAGNOSTICS in names and ct.BRIDGE_DIAGNOSTICS not in ct.default_record_topics()
+    assert ct.BRIDGE_DIAGNOSTICS in names and ct.BRIDGE_DIAGNOSTICS in ct.default_record_topics()  # issue 45: recorded
     assert {"/clock", "state", "reward", "episode", "lane_change_cmd", "agent/metrics", "ego/odom"} <= set(names)
     for t in ct.TOPICS:
         assert t.msgtype in TS.fielddefs, t.msgtype

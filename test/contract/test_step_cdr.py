@@ -17,15 +17,18 @@ from der_ros.contract import (
     clock_cdr,
     cloud_to_points,
     command_cdr,
+    ego_tf_cdr,
     header_ns,
     odometry_cdr,
     parse_command,
     parse_reward,
     read_command_cdr,
+    read_odometry_pose_cdr,
     read_reward_cdr,
     read_state_cdr,
     reward_cdr,
     state_cdr,
+    tf_cdr,
 )
 from der_ros.nodes import msg_conversions as mc
 from sumo_bridge.observation import POINT_FIELDS
@@ -172,3 +175,29 @@ def test_the_nodes_rclpy_builders_are_the_contracts_bytes() -> None:
     assert mc.make_clock(77) == ref.make_clock(77)
     with pytest.raises(ValueError, match="expected >= 0"):
         mc.make_reward(-1, 0.0, False, False)
+
+
+@pytest.mark.parametrize(("frame", "child"), [("map", "ego"), ("", "é"), ("world", "")])
+def test_tf_and_the_odometry_pose_it_is_made_from(frame: str, child: str) -> None:
+    """The recorder's ``/tf`` (issue 45): rosbags decodes the TFMessage to the odometry's pose and
+    serialises it to the same bytes; the pose reader inverts ``odometry_cdr`` and refuses junk."""
+    import math
+
+    stamp = 987_654_321_123
+    odom = odometry_cdr(stamp, 12.5, -3.0, 30.0, 9.0, frame, child)
+    got = read_odometry_pose_cdr(odom)
+    assert got is not None
+    got_stamp, got_frame, got_child, pose = got
+    yaw = math.radians(60.0)
+    assert (got_stamp, got_frame, got_child) == (stamp, frame, child)
+    assert pose == pytest.approx((12.5, -3.0, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)))
+    tf = tf_cdr(got_stamp, pose[:3], pose[3:], got_frame, got_child)
+    assert tf == ego_tf_cdr(stamp, 12.5, -3.0, 30.0, frame, child)
+    msg = TS.deserialize_cdr(tf, "tf2_msgs/msg/TFMessage")
+    (tr,) = msg.transforms
+    assert (header_ns(tr), tr.header.frame_id, tr.child_frame_id) == (stamp, frame, child)
+    t, r = tr.transform.translation, tr.transform.rotation
+    assert (t.x, t.y, t.z, r.x, r.y, r.z, r.w) == pose
+    assert bytes(TS.serialize_cdr(msg, "tf2_msgs/msg/TFMessage")) == tf
+    for junk in (b"", odom[:30], b"\x00\x00\x00\x00" + odom[4:], odom[:70]):  # empty, cut, big-endian, cut in the pose
+        assert read_odometry_pose_cdr(junk) is None

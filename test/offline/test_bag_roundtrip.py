@@ -192,7 +192,7 @@ def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pyt
 
 def test_der_replay_is_the_old_spelling_of_der_bag(env_bag: tuple[Path, object],
                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    """``der bag`` was ``der replay`` before issue 42; scripts that spell it the old way still work."""
+    """``der bag`` was ``der bag`` before issue 42; scripts that spell it the old way still work."""
     path, _truth = env_bag
     assert der_main(["bag", "info", str(path), "--json"]) == 0
     new = json.loads(capsys.readouterr().out)
@@ -248,7 +248,8 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     assert doc["truncated"] and doc["metadata_stale"]
     assert "truncated" in captured.err and str(cut / src.name) in captured.err
     assert 0 < doc["message_count"] < truth.n_messages
-    # a flipped byte in a chunk: that chunk is skipped, with one warning, and info reports it
+    # a flipped byte in an (uncompressed) chunk: the record holding it is dropped, with one warning, and
+    # info reports it; the chunk's other records are read
     bad = tmp_path / "bad"
     bad.mkdir()
     flipped = bytearray(raw)
@@ -258,12 +259,14 @@ def test_cli_cut_and_corrupted_bags(env_bag: tuple[Path, object], tmp_path: Path
     captured = capsys.readouterr()
     doc = json.loads(captured.out)
     (chunk,) = doc["skipped"]["ranges"]
-    assert doc["skipped"]["chunks"] == 1 and doc["skipped"]["messages_lost"] == chunk["messages_lost"] > 0
-    assert chunk["start"] < len(raw) // 3 < chunk["end"] and doc["skipped"]["bytes"] == chunk["end"] - chunk["start"]
-    assert doc["message_count"] == truth.n_messages - chunk["messages_lost"]
-    assert captured.err.count("skipped the damaged chunk") == 1 and f"bytes {chunk['start']}-{chunk['end']}" in captured.err
+    assert doc["skipped"]["chunks"] == 1 and doc["skipped"]["messages_lost"] == chunk["messages_lost"] == 1
+    assert chunk["start"] < len(raw) // 3 < chunk["end"] and chunk["damaged_at"] == len(raw) // 3
+    assert chunk["dropped"][0] <= len(raw) // 3 < chunk["dropped"][1]
+    assert doc["skipped"]["bytes"] == chunk["dropped"][1] - chunk["dropped"][0]
+    assert doc["message_count"] == truth.n_messages - 1
+    assert captured.err.count(f"damaged byte at {len(raw) // 3}") == 1 and f"bytes {chunk['start']}-{chunk['end']}" in captured.err
     assert der_main(["bag", "info", str(bad)]) == 0
-    assert "DAMAGED:   1 chunk(s) skipped" in capsys.readouterr().out
+    assert f"DAMAGED:   1 chunk(s) damaged (one byte at {len(raw) // 3}, 1 record dropped)" in capsys.readouterr().out
     # damage the framing of a bag without chunk index (a killed recorder's): a clean one-line error
     worse = tmp_path / "worse"
     worse.mkdir()
