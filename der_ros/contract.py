@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-import yaml
+
+from der_ros.yaml_loader import YamlError, load_yaml_text
 
 __all__ = [
     # topic names
@@ -204,8 +205,8 @@ def parse_qos_profiles(text: str | None) -> tuple[dict[str, Any], ...]:
     if not text:
         return ()
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError:
+        data = load_yaml_text(text, "offered_qos_profiles")
+    except YamlError:
         log.warning("unreadable offered_qos_profiles %r; using the default QoS", text[:80])
         return ()
     if not isinstance(data, list):

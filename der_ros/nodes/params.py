@@ -44,8 +44,6 @@ from dataclasses import is_dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from der_ros.configuration import (
     ConfigError,
     FieldSpec,
@@ -65,6 +63,7 @@ from der_ros.nodes.param_check import (
     parameter_error,
     section_error,
 )
+from der_ros.yaml_loader import YamlError, load_yaml_text
 
 __all__ = [
     "ConfigParameters",
@@ -306,8 +305,10 @@ def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
         if not sep or not eq or node not in NODE_SECTIONS or not name:
             raise ConfigError(f"-p {item!r}: expected NODE:NAME=VALUE with NODE in {', '.join(NODE_SECTIONS)}")
         try:
-            out.setdefault(node, {})[name] = yaml.safe_load(value)
-        except yaml.YAMLError:
+            out.setdefault(node, {})[name] = load_yaml_text(value, f"-p {node}:{name}")
+        except YamlError as exc:
+            if not exc.syntax:  # YAML that says something ambiguous, too deep or too large
+                raise ConfigError(str(exc), key=name) from None
             out.setdefault(node, {})[name] = value  # not YAML: the text itself (the check names the type)
     return out
 
