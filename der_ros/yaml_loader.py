@@ -104,7 +104,10 @@ class _Loader(yaml.SafeLoader):
         parts = [*self._path, extra] if extra is not None else list(self._path)
         if len(parts) > 6:
             parts = [*parts[:3], "...", *parts[-2:]]
-        return ".".join(parts).replace(".[", "[")
+        out = ""
+        for part in parts:  # a.b[0].c, shortened to a.b.c...y.z
+            out += part if part.startswith("[") or part == "..." or not out or out.endswith("...") else "." + part
+        return out
 
     def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D401 - PyYAML hook
         is_key = isinstance(parent, MappingNode) and index is None
@@ -166,6 +169,10 @@ class _Loader(yaml.SafeLoader):
         if len(node.value) > self.max_scalar:
             raise self.fail(line, f"a value of {len(node.value)} characters ({excerpt(node.value)}), more than "
                                   f"{self.max_scalar}")
+        if node.tag == _TAG + "int" and len(node.value) > 4000:
+            raise self.fail(line, f"an integer of {len(node.value)} digits; expected a number a program can use")
+        if node.tag == _TAG + "float" and "inf" not in node.value.lower() and math.isinf(float(node.value)):
+            raise self.fail(line, f"{excerpt(node.value)} is beyond the float range (it would be read as inf)")
         if not is_key and node.style is None and _AMBIGUOUS.match(node.value):
             raise self.fail(line, f"{excerpt(node.value)} means something else in YAML 1.1 than in YAML 1.2; quote "
                                   "it, or write true/false or a plain decimal number")
