@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -89,6 +90,7 @@ ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right")
 
 #: ``reward.header.frame_id`` = this prefix + the action the bridge applied to reach the state
 APPLIED_ACTION_PREFIX = "applied_action="
+_ACTION_DIGITS = re.compile(r"[0-9]{1,9}")
 #: ``sensor_msgs/PointField.FLOAT64``: the only datatype of the ``state`` cloud's fields
 POINTFIELD_FLOAT64 = 8
 #: observations and rewards are stored as float32: larger values (and NaN/inf) are malformed input
@@ -476,10 +478,12 @@ def parse_applied_action(msg: Any) -> int | None:
 def _applied_action(frame: str) -> int | None:
     if not frame.startswith(APPLIED_ACTION_PREFIX):
         return None
-    try:
-        return int(frame[len(APPLIED_ACTION_PREFIX):])
-    except ValueError:
-        raise ValueError(f"reward frame_id = {frame!r}, expected '{APPLIED_ACTION_PREFIX}<integer>'") from None
+    digits = frame[len(APPLIED_ACTION_PREFIX):]
+    # ASCII digits only: int() also reads '\u0661' (Arabic-Indic one), ' 1', '+1' and '1_0'
+    if not _ACTION_DIGITS.fullmatch(digits):
+        raise ValueError(f"reward frame_id = {frame[:60]!r}, expected '{APPLIED_ACTION_PREFIX}<integer>' "
+                         "(ASCII digits)")
+    return int(digits)
 
 
 def parse_reward(msg: Any) -> Reward:

@@ -63,7 +63,7 @@ from der_ros.nodes.param_check import (
     parameter_error,
     section_error,
 )
-from der_ros.yaml_loader import YamlError, load_yaml_text
+from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 
 __all__ = [
     "ConfigParameters",
@@ -339,6 +339,15 @@ def build_graph_params(
     """
     params = copy.deepcopy(dict(base))
     origins: dict[str, dict[str, str]] = {}
+    for node in params:  # a ROS params file: node name -> {ros__parameters: ...}, nothing else (rcl refuses it)
+        if node not in NODE_SECTIONS:
+            raise ConfigError(f"{base_name}: top-level key {excerpt(node)} is not a node of the graph; a ROS params "
+                              f"file maps {', '.join(NODE_SECTIONS)} to {{ros__parameters: ...}}")
+        section = params[node]
+        if not isinstance(section, dict) or set(section) != {"ros__parameters"}:
+            found = ", ".join(excerpt(k) for k in section) if isinstance(section, dict) else type(section).__name__
+            raise ConfigError(f"{base_name}: section {node!r} is not a ROS params section: expected exactly the key "
+                              f"ros__parameters, found {found or 'nothing'}")
     for node in NODE_SECTIONS:
         section = params.setdefault(node, {})
         if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
