@@ -127,7 +127,7 @@ def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_pat
     assert s["commands/foreign_sender"] >= 2 * steps, s  # the input condition: the flood ran through the steps
     # and yet the agent's answers drove the steps: each step ran on its answer or (answer drowned) on the
     # timeout -- an answer that comes after it is refused as late, never applied to another step -- and few
-    # drowned (on the bridge of before: 55-67 of 100)
+    # drowned (on the bridge of before, 55-67 of 100 steps ran on a 2 s timeout)
     assert s["commands/accepted"] + s["commands/timeouts"] == steps and s["commands/late"] <= s["commands/timeouts"], s
     assert s["commands/timeouts"] <= 0.2 * steps, s
     assert rejected >= s["commands/foreign_sender"]
