@@ -187,3 +187,20 @@ def test_der_graph_refuses_an_agent_step_that_is_not_the_bridges(tmp_path: Path)
         "scenario.decision_interval)")
     line = _refused(tmp_path, "-p", "bridge_node:scenario.decision_interval=2")
     assert line.startswith(f"{PARAMS}/agent_node/step_seconds = 0.5: expected the bridge's step, 0.2 s")
+
+
+def test_der_graph_refuses_a_lying_params_file(tmp_path: Path) -> None:
+    """Issue 45, finding 2 through der graph: a repeated section, deep nesting, a huge value -- one line each."""
+    text = PARAMS.read_text()
+    dup = tmp_path / "dup.params.yaml"
+    dup.write_text(text + "\nagent_node:\n  ros__parameters:\n    agent.lr: 100\n")
+    first = next(i for i, x in enumerate(text.splitlines(), 1) if x.startswith("agent_node:"))
+    line = len(text.splitlines()) + 2
+    assert _refused(tmp_path, "--params", str(dup)) == (
+        f"{dup}: line {line}: key 'agent_node': duplicate key (first at line {first})")
+    deep = tmp_path / "deep.params.yaml"
+    deep.write_text("agent_node: " + "[" * 3000 + "]" * 3000 + "\n")
+    assert _refused(tmp_path, "--params", str(deep)).endswith("nested deeper than 64 levels")
+    huge = tmp_path / "huge.params.yaml"
+    huge.write_text("agent_node:\n  ros__parameters:\n    device: " + "x" * 3_000_000 + "\n")
+    assert len(_refused(tmp_path, "--params", str(huge))) < 200
