@@ -217,3 +217,18 @@ def test_a_huge_value_in_a_config_error_is_cut(tmp_path):
     with pytest.raises(ConfigError) as exc:
         load_experiment_config(path)
     assert len(str(exc.value)) < 250 and "(50000 characters)" in str(exc.value)
+
+
+def test_der_train_refuses_a_repeated_section_before_training(tmp_path, capsys):
+    """Issue 45: a second ``agent:`` section replaced the first and der train trained on it with rc 0."""
+    from der_ros import cli
+
+    path = tmp_path / "lying.yaml"
+    path.write_text((Path(__file__).resolve().parents[1] / "config" / "cartpole.yaml").read_text()
+                    + "\nagent:\n  lr: 0.5\n")
+    first = next(i for i, x in enumerate(path.read_text().splitlines(), 1) if x.startswith("agent:"))
+    last = len(path.read_text().splitlines()) - 1
+    assert cli.main(["train", "--config", str(path), "--run-dir", str(tmp_path / "run")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"der train: configuration error: {path}: line {last}: key 'agent': duplicate key (first at line {first})")
+    assert not (tmp_path / "run").exists()
