@@ -88,7 +88,7 @@ def _deserialize(data: bytes, msg_type: type) -> Any:
 
 
 #: learner counters of what it dropped, reported in the log (at most one line per period)
-_DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted",
+_DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted", "off_grid",
                   "stream_jumps", "abandoned_episodes")
 _DROP_LOG_PERIOD = 5.0
 #: start-up gate (min_command_subscribers): check period, and consecutive matched checks needed
