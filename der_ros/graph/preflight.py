@@ -28,6 +28,7 @@ from typing import Any
 
 from der_ros.configuration import ConfigError, from_dict, unflatten_names
 from der_ros.nodes.param_check import parameter_error
+from sumo_bridge.observation import ObservationConfig, empty_points, encode_observation
 
 __all__ = ["check_graph_files", "writable_problem"]
 
@@ -61,7 +62,6 @@ def writable_problem(path: Path, kind: str) -> str | None:
 
 def _check_checkpoint(value: str, agent: Mapping[str, Any], origin: str) -> None:
     from der_ros.agent.dqn import DQNAgent  # lazy: torch
-    from sumo_bridge.observation import ObservationConfig, empty_points, encode_observation
 
     def fail(reason: str) -> ConfigError:
         return parameter_error(origin, "agent_node", "checkpoint_in", value, reason)
