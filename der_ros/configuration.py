@@ -28,6 +28,9 @@ from typing import Any, TypeVar
 
 import yaml
 
+from der_ros import yaml_loader
+from der_ros.yaml_loader import YamlError, excerpt
+
 T = TypeVar("T")
 
 __all__ = [
@@ -187,7 +190,7 @@ def _type_name(tp: Any) -> str:
 
 
 def _fail(where: str, spec: FieldSpec, value: Any, reason: str) -> ConfigError:
-    return ConfigError(f"{where}: {spec.name} = {value!r}, {reason}", key=spec.name, value=value, reason=reason)
+    return ConfigError(f"{where}: {spec.name} = {excerpt(value)}, {reason}", key=spec.name, value=value, reason=reason)
 
 
 def _coerce(value: Any, spec: FieldSpec, where: str) -> Any:
@@ -289,7 +292,8 @@ def reject_unknown_keys(
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise ConfigError(
-            f"{source}: unknown {what} {unknown[0]!r} (value {data[unknown[0]]!r}); {known_as}: {', '.join(known)}"
+            f"{source}: unknown {what} {excerpt(unknown[0])} (value {excerpt(data[unknown[0]])}); {known_as}: "
+            f"{', '.join(known)}"
         )
 
 
@@ -325,23 +329,14 @@ def read_yaml_mapping(path: str | Path, expected: str = "a mapping") -> dict[str
     """The top-level mapping of a YAML file; :class:`ConfigError` naming the file if it is missing,
     not text (binary garbage: the first byte that is not UTF-8), not valid YAML, empty or only
     comments (an empty file would silently mean "all defaults", which is never what its author
-    meant; write ``{}`` for that), or not ``expected`` (a mapping) at the top level."""
+    meant; write ``{}`` for that), or not ``expected`` (a mapping) at the top level. Read with
+    :func:`der_ros.yaml_loader.load_yaml`: duplicate keys, too deep or too large files and
+    ambiguous scalars are refused, numbers follow YAML 1.2 (``1e-3`` is a float)."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    raw = path.read_bytes()
     try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            f"{path}: not a text file: byte 0x{raw[exc.start]:02x} at offset {exc.start} is not UTF-8; expected "
-            f"a YAML file"
-        ) from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        detail = " ".join(str(exc).split())
-        raise ConfigError(f"{path}: not valid YAML: {detail}") from None
+        data = yaml_loader.load_yaml(path)
+    except YamlError as exc:
+        raise ConfigError(str(exc), key=exc.key) from None
     if data is None:
         raise ConfigError(f"{path}: the file is empty or holds only comments; expected {expected} (write {{}} "
                           "to use every default)")

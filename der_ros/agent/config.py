@@ -19,7 +19,8 @@ __all__ = ["DQNConfig"]
 class DQNConfig:
     """Hyperparameters of :class:`der_ros.agent.dqn.DQNAgent`."""
 
-    lr: float = param(5e-4, "Adam learning rate (paper sections 4.1 and 5: 0.0005)", low=0.0, low_inclusive=False)
+    lr: float = param(5e-4, "Adam learning rate (paper sections 4.1 and 5: 0.0005); above 1 it is a typo, never a setting",
+                      low=0.0, low_inclusive=False, high=1.0)
     gamma: float = param(0.98, "discount factor gamma of eq. 1 (paper: 0.98 CartPole, 0.99 Atari)", low=0.0, high=1.0)
     batch_size: int = param(128, "transitions per gradient step (paper: 128)", low=1)
     reward_scale: float = param(

@@ -24,15 +24,23 @@ Robustness (all counted in :attr:`OnlineLearner.counters`):
   counts them as malformed messages);
 * a second message of a topic for a stamp already buffered -> ``duplicate_state`` /
   ``duplicate_reward``, ignored;
+* with ``step_ns`` known, a message stamped off the step grid (not a multiple of ``step_ns``)
+  belongs to no step: ``off_grid``, dropped before anything is buffered (kept, it would make the
+  next real step look like a gap and lose its transition);
 * *the window*: a message stamped at or before the last completed step, or further than
   ``max_buffered`` steps after it (``step_ns`` known), is outside the current stream ->
-  ``stale_state`` / ``stale_reward``, never joined into it. Such halves are *parked*: two
-  consecutive complete steps outside the window mean the stream itself jumped -- a restarted
+  ``stale_state`` / ``stale_reward``, never joined into it. Such halves are *parked* (a second
+  half of a kind already parked for a stamp, or a half parked before the current stream's last
+  step, is replaced by the newer message: never joined across streams). A restarted
   bridge begins again at sim time 0, and one pair stamped far in the future must not make every
-  later step look stale -- so the learner follows the new stream: ``stream_jumps`` += 1, the open
-  transition and the episode in progress are dropped (``abandoned_episodes``), nothing wrong is
-  stored, and the newer of the two steps is answered. A single re-delivered or forged pair never
-  moves the stream;
+  later step look stale, so the learner follows a new stream when a parked step t1 completes,
+  the step before it (t1 - ``step_ns``; without ``step_ns`` the highest parked complete stamp
+  below t1) completed in the parked area before it, and *no step of the current stream completed
+  since that earlier step began to arrive* (the old stream went silent). Then ``stream_jumps``
+  += 1, the open transition and the episode in progress are dropped (``abandoned_episodes``),
+  nothing wrong is stored, and t1 is answered -- the second step of a restarted bridge, whatever
+  else is parked. A single re-delivered or forged pair never moves the stream, nor do copies
+  arriving while the current stream is alive;
 * when step t completes while an earlier step (after the pending one) is still incomplete, that
   earlier step is lost: ``gaps`` += 1, the incomplete halves are dropped and the pending
   (s, a) is discarded instead of being joined to the wrong next state;
@@ -41,8 +49,9 @@ Robustness (all counted in :attr:`OnlineLearner.counters`):
 * the bridge reports in each reward which action it applied (``applied_action``); when that is
   not the action this learner sent (the command missed the bridge's timeout and the default was
   applied), the transition stores the applied one: ``overridden_actions``;
-* at most ``max_buffered`` incomplete stamps are kept (and as many parked ones); the one that
-  arrived first is evicted (``evicted``), so a flood of fresh stamps cannot pin old ones.
+* at most ``max_buffered`` incomplete stamps are kept (and as many parked halves, and as many
+  parked complete steps); the one that arrived first is evicted (``evicted``), so a flood of
+  fresh stamps cannot pin old ones.
 
 Paused (evaluation mode): act greedily (``explore=False``), store nothing and never learn;
 episode accounting continues (reported with ``eval/`` metric names).
@@ -132,6 +141,8 @@ class Decision:
 class _Half:
     #: arrival order of the first message of this stamp (eviction is first in, first out)
     seq: int
+    #: arrival order of the message that completed it (0 while incomplete)
+    done_seq: int = 0
     obs: np.ndarray | None = None
     reward: tuple[float, bool, bool, int | None] | None = None
 
@@ -181,8 +192,10 @@ class OnlineLearner:
         self.window_ns = max_buffered * self.step_ns if self.step_ns else None
         self.paused = False
         self._buf: dict[int, _Half] = {}  # stamps in the window of the current stream
-        self._parked: dict[int, _Half] = {}  # stamps outside it: stale copies, or the start of a new stream
-        self._seq = 0
+        self._parked: dict[int, _Half] = {}  # incomplete stamps outside it: stale copies, or a new stream
+        self._parked_done: dict[int, _Half] = {}  # complete steps outside it (newest copy per stamp)
+        self._seq = 0  # arrival counter of messages
+        self._live_seq = 0  # arrival number of the message that last completed a step of the current stream
         self._last_completed: int | None = None
         self._pending: tuple[np.ndarray, int, int] | None = None  # (obs_k, a_k, t_k)
         self._episode: _Episode | None = None
@@ -200,6 +213,7 @@ class OnlineLearner:
                 "stale_reward",
                 "gaps",
                 "evicted",
+                "off_grid",
                 "stream_jumps",
                 "abandoned_episodes",
                 "transitions",
@@ -282,12 +296,27 @@ class OnlineLearner:
 
     def _add(self, stamp_ns: int, kind: str, value: Any) -> list[Decision]:
         topic = "state" if kind == "obs" else "reward"
+        self._seq += 1
+        if self.step_ns is not None and stamp_ns % self.step_ns:
+            self.counters["off_grid"] += 1
+            return []
         if not self._in_window(stamp_ns):
             self.counters[f"stale_{topic}"] += 1
+            half = self._parked.get(stamp_ns)
+            if half is not None and (getattr(half, kind) is not None or half.seq <= self._live_seq):
+                # a second copy, or a half older than the current stream's last step: never
+                # complete it with this one (the newest wins)
+                del self._parked[stamp_ns]
             half = self._slot(self._parked, stamp_ns)
-            if getattr(half, kind) is None:
-                setattr(half, kind, value)
-            return self._follow_jump()
+            setattr(half, kind, value)
+            if not half.complete:
+                return []
+            del self._parked[stamp_ns]
+            half.done_seq = self._seq
+            self._parked_done.pop(stamp_ns, None)
+            self._bounded(self._parked_done)
+            self._parked_done[stamp_ns] = half
+            return self._follow_jump(stamp_ns)
         half = self._slot(self._buf, stamp_ns)
         if getattr(half, kind) is not None:
             self.counters[f"duplicate_{topic}"] += 1
@@ -295,30 +324,39 @@ class OnlineLearner:
         setattr(half, kind, value)
         return self._drain()
 
+    def _bounded(self, table: dict[int, _Half]) -> None:
+        """Make room for one more entry: evict the one that arrived first."""
+        if len(table) >= self.max_buffered:
+            first = min(table, key=lambda t: table[t].seq)
+            del table[first]
+            self.counters["evicted"] += 1
+
     def _slot(self, table: dict[int, _Half], stamp_ns: int) -> _Half:
         half = table.get(stamp_ns)
         if half is None:
-            if len(table) >= self.max_buffered:
-                first = min(table, key=lambda t: table[t].seq)
-                del table[first]
-                self.counters["evicted"] += 1
-            self._seq += 1
+            self._bounded(table)
             half = table[stamp_ns] = _Half(self._seq)
         return half
 
-    def _follow_jump(self) -> list[Decision]:
-        """Two consecutive complete steps outside the window: the stream jumped; follow it."""
-        done = sorted(t for t, h in self._parked.items() if h.complete)
-        if len(done) < 2:
-            return []
-        t0, t1 = done[-2], done[-1]
-        if self.step_ns is not None and t1 - t0 != self.step_ns:
-            return []
-        start = self._parked[t0].seq  # halves that arrived before the new stream began belong to the old one
-        new = self._parked.pop(t1)
-        keep = {t: h for table in (self._buf, self._parked) for t, h in table.items() if t > t1 and h.seq > start}
+    def _follow_jump(self, t1: int) -> list[Decision]:
+        """Parked step ``t1`` just completed: follow it if it is the second step of a new stream."""
+        done = self._parked_done
+        if self.step_ns is not None:
+            t0 = t1 - self.step_ns
+        else:
+            below = [t for t in done if t < t1]
+            t0 = max(below) if below else None
+        first = done.get(t0) if t0 is not None else None
+        if first is None or first.done_seq >= done[t1].done_seq or first.seq <= self._live_seq:
+            return []  # no earlier step, or the current stream completed a step since it began
+        start = first.seq  # halves that arrived before the new stream began belong to the old one
+        new = done.pop(t1)
+        # halves of the new stream's next step may have come early; anything else parked is stale
+        nxt = (lambda t: t == t1 + self.step_ns) if self.step_ns is not None else (lambda t: t > t1)
+        keep = {t: h for table in (self._buf, self._parked, done) for t, h in table.items() if nxt(t) and h.seq > start}
         self._buf = keep
         self._parked = {}
+        self._parked_done = {}
         self.counters["stale_state"] -= 1  # the two halves of t1 are used after all
         self.counters["stale_reward"] -= 1
         self.counters["stream_jumps"] += 1
@@ -328,7 +366,8 @@ class OnlineLearner:
         self._pending = None  # never join the old stream's last state to the new stream
         self._last_completed = t0
         assert new.obs is not None and new.reward is not None
-        return [self._complete(t1, new.obs, *new.reward), *self._drain()]
+        decision = self._complete(t1, new.obs, *new.reward)
+        return [decision, *self._drain()]
 
     def _drain(self) -> list[Decision]:
         """Process every complete stamp, oldest first; earlier incomplete stamps count as gaps."""
@@ -352,6 +391,7 @@ class OnlineLearner:
         self, t: int, obs: np.ndarray, reward: float, terminated: bool, truncated: bool, applied: int | None
     ) -> Decision:
         self._last_completed = t
+        self._live_seq = self._seq
         self.env_steps += 1
         stored = False
         if self._pending is not None and self.step_ns is not None and t - self._pending[2] != self.step_ns:

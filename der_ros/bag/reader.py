@@ -76,6 +76,7 @@ from der_ros.bag.mcap_records import (
     read_str,
 )
 from der_ros.contract import parse_qos_profiles
+from der_ros.yaml_loader import MAX_BYTES, load_yaml
 
 __all__ = [
     "BagError",
@@ -333,7 +334,7 @@ def _find_files(path: Path) -> tuple[list[Path], dict[str, Any] | None]:
 
 def _load_metadata(meta_path: Path) -> dict[str, Any] | None:
     try:
-        data = yaml.safe_load(meta_path.read_text())
+        data = load_yaml(meta_path, max_bytes=64 * MAX_BYTES)
         info = data["rosbag2_bagfile_information"]
         if not isinstance(info, dict):
             raise TypeError("not a mapping")

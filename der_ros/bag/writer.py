@@ -68,6 +68,7 @@ from der_ros.contract import (
     topic_by_name,
     topic_spec,
 )
+from der_ros.yaml_loader import load_yaml_text
 
 __all__ = [
     "BagWriter",
@@ -121,7 +122,7 @@ def _qos_list(qos: QosLike, topic: str) -> list[dict[str, Any]]:
         spec = topic_by_name(topic)
         return [(spec.qos if spec is not None else RELIABLE_VOLATILE).to_rosbag2()]
     if isinstance(qos, str):
-        parsed = yaml.safe_load(qos) if qos.strip() else []
+        parsed = load_yaml_text(qos, f"QoS of {topic}") if qos.strip() else []
         return _qos_list(parsed or [], topic) if parsed else []
     if isinstance(qos, QosSpec):
         return [qos.to_rosbag2()]

@@ -12,6 +12,7 @@ few us.
 from __future__ import annotations
 
 import math
+import re
 import struct
 from typing import Any, NamedTuple
 
@@ -54,13 +55,18 @@ def parse_applied_action(msg: Any) -> int | None:
     return _applied_action(str(msg.header.frame_id))
 
 
+_ACTION_DIGITS = re.compile(r"[0-9]{1,9}")
+
+
 def _applied_action(frame: str) -> int | None:
     if not frame.startswith(APPLIED_ACTION_PREFIX):
         return None
-    try:
-        return int(frame[len(APPLIED_ACTION_PREFIX):])
-    except ValueError:
-        raise ValueError(f"reward frame_id = {frame!r}, expected '{APPLIED_ACTION_PREFIX}<integer>'") from None
+    digits = frame[len(APPLIED_ACTION_PREFIX):]
+    # ASCII digits only: int() also reads '\u0661' (Arabic-Indic one), ' 1', '+1' and '1_0'
+    if not _ACTION_DIGITS.fullmatch(digits):
+        raise ValueError(f"reward frame_id = {frame[:60]!r}, expected '{APPLIED_ACTION_PREFIX}<integer>' "
+                         "(ASCII digits)")
+    return int(digits)
 
 
 def parse_reward(msg: Any) -> Reward:

@@ -27,9 +27,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import yaml
 
 from der_ros.contract.reward import APPLIED_ACTION_PREFIX
+from der_ros.yaml_loader import YamlError, load_yaml_text
 
 __all__ = [
     # topic names
@@ -192,8 +192,8 @@ def parse_qos_profiles(text: str | None) -> tuple[dict[str, Any], ...]:
     if not text:
         return ()
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError:
+        data = load_yaml_text(text, "offered_qos_profiles")
+    except YamlError:
         log.warning("unreadable offered_qos_profiles %r; using the default QoS", text[:80])
         return ()
     if not isinstance(data, list):

@@ -12,7 +12,7 @@ a sweep with ``train.final_eval_episodes = --episodes`` would use, so the first 
 own); ``report`` the report evaluation seeds (``EVAL_SEED_BASE + k``), for a finished report run
 (the first ones are then the table's own evaluation). ``--out DIR`` also saves each run's episodes as
 ``DIR/<method>/<seed dir>/evaluation.json`` (:class:`~der_ros.train.evaluation.EvalResult`), which
-research/tuning/compare_arms.py compares situation by situation. Was research/tuning/reevaluate.py.
+research/tuning/compare_arms.py compares situation by situation. Was der_ros/experiments/evaluate_runs.py (der evaluate).
 """
 
 from __future__ import annotations

@@ -25,8 +25,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from der_ros.configuration import ConfigError
 from der_ros.experiments.aggregate import final_evaluation, iqm_interval
 from der_ros.experiments.aggregate import iqm as iqm_point
@@ -42,6 +40,7 @@ from der_ros.experiments.suite import (
 from der_ros.experiments.table_report import write_markdown
 from der_ros.train.config import add_set_argument, parse_assignments
 from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
+from der_ros.yaml_loader import YamlError, load_yaml_text
 
 __all__ = ["add_arguments", "run", "parse_grid", "grid_methods", "score_sweep_run", "RANK_KEYS"]
 
@@ -79,9 +78,9 @@ def parse_grid(items: Sequence[str]) -> list[tuple[str, list[Any]]]:
         values = []
         for v in _split_values(raw):
             try:
-                values.append(yaml.safe_load(v))
-            except yaml.YAMLError as exc:
-                raise ConfigError(f"command line: --grid {key}: value {v!r} is not valid YAML: {exc}") from None
+                values.append(load_yaml_text(v, f"command line: --grid {key}"))
+            except YamlError as exc:
+                raise ConfigError(str(exc)) from None
         if not values:
             raise ConfigError(f"command line: --grid {item!r} has no values")
         if any(k == key for k, _ in grid):

@@ -26,7 +26,9 @@ from pathlib import Path
 
 import yaml
 
+from der_ros.configuration import ConfigError
 from der_ros.graph.greedy_episode import greedy_episode_gif
+from der_ros.graph.preflight import check_graph_files, writable_problem
 from der_ros.graph.run_progress import Progress
 from der_ros.graph.run_summary import bridge_summary, report, snapshot_from_bag, unanswered_run
 from der_ros.graph.snapshot_evaluation import GraphEvaluator
@@ -39,7 +41,7 @@ from der_ros.graph.supervisor import (
     ros_environment,
 )
 from der_ros.interrupts import interrupts_raise
-from der_ros.nodes.params import build_graph_params, load_params_file
+from der_ros.nodes.params import build_graph_params, load_params_file, parse_overrides
 
 __all__ = ["add_arguments", "run", "node_specs", "default_params_file", "NODES"]
 
@@ -52,6 +54,8 @@ NODES: dict[str, tuple[str, str]] = {
     "bridge_node": ("der_ros.nodes.bridge_node", r"bridge ready"),
 }
 START_ORDER = ("recorder_node", "agent_node", "bridge_node")
+#: outputs der graph places in the run directory (unless -p sets them)
+RUN_DIR_OUTPUTS = {("recorder_node", "output"), ("agent_node", "checkpoint_out"), ("agent_node", "policy_dir")}
 STOP_ORDER = ("bridge_node", "agent_node", "recorder_node")
 
 
@@ -113,12 +117,12 @@ def node_specs(params_path: Path, env: dict[str, str], composed: bool) -> list[P
 def run(args: argparse.Namespace) -> int:
     """One ``der graph`` run. Expects SIGINT and SIGTERM to raise KeyboardInterrupt (``der`` and
     :func:`main` install that: a background start would otherwise inherit SIGINT ignored)."""
-    if args.steps < 1:
-        raise SystemExit("der graph: --steps must be >= 1")
+    if args.steps < 1:  # a bad input: exit 2 like every other (ConfigError), before anything starts
+        raise ConfigError(f"--steps = {args.steps}, expected >= 1")
     for flag, value in (("--eval-interval", args.eval_interval), ("--eval-episodes", args.eval_episodes),
                         ("--final-eval-episodes", args.final_eval_episodes)):  # fmt: skip
         if value < 0:
-            raise SystemExit(f"der graph: {flag} = {value}, expected >= 0")
+            raise ConfigError(f"{flag} = {value}, expected >= 0")
     run_dir = args.run_dir or Path("runs") / time.strftime("graph-%Y%m%d-%H%M%S", time.gmtime())
     if run_dir.exists() and any(run_dir.iterdir()):
         raise SystemExit(f"der graph: run directory {run_dir} exists and is not empty")
@@ -132,6 +136,18 @@ def run(args: argparse.Namespace) -> int:
     if args.eval_interval and args.eval_episodes:
         params["agent_node"]["ros__parameters"]["policy_every"] = int(args.eval_interval)
         params["agent_node"]["ros__parameters"]["policy_dir"] = str(run_dir / "policies")
+    overridden = parse_overrides(args.param)
+    base_origin = str(params_in) if params_in is not None else "node defaults"
+
+    def origin_of(node: str, name: str) -> str:
+        if name in overridden.get(node, {}):
+            return "-p"
+        return "--run-dir" if (node, name) in RUN_DIR_OUTPUTS else base_origin
+
+    problem = writable_problem(run_dir, "new_dir")
+    if problem is not None:
+        raise ConfigError(f"--run-dir {run_dir}: {problem}")
+    check_graph_files(params, origin_of)  # files and paths the nodes will use: one line, before any process starts
     run_dir.mkdir(parents=True, exist_ok=True)
     params_path = run_dir / "params.yaml"
     params_path.write_text(yaml.safe_dump(params, sort_keys=False))

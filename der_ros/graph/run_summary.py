@@ -15,6 +15,7 @@ import json
 import logging
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -108,11 +109,19 @@ def snapshot_from_bag(bag: Path, live: ProgressSnapshot | None) -> ProgressSnaps
     decision steps = recorded commands, episodes and outcomes from the bag's episode summary."""
     if not bag.is_dir():
         return live
-    try:
-        counts = BagReader(bag).topic_counts()
-        events = read_episode_summary(bag)
-    except (BagError, OSError) as exc:
-        log.warning("could not read the bag summary (%s); using the live counts", exc)
+    error: Exception | None = None
+    # a killed recorder's bag warns: one log line each, never Python's raw "file:line: Category: ..." print
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            counts = BagReader(bag).topic_counts()
+            events = read_episode_summary(bag)
+        except (BagError, OSError) as exc:
+            error = exc
+    for w in caught:
+        log.warning("%s", w.message)
+    if error is not None:
+        log.warning("could not read the bag summary (%s); using the live counts", error)
         return live
     if counts is None:
         return live

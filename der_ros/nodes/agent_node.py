@@ -89,7 +89,7 @@ def _deserialize(data: bytes, msg_type: type) -> Any:
 
 
 #: learner counters of what it dropped, reported in the log (at most one line per period)
-_DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted",
+_DROP_COUNTERS = ("stale_state", "stale_reward", "duplicate_state", "duplicate_reward", "gaps", "evicted", "off_grid",
                   "stream_jumps", "abandoned_episodes")
 _DROP_LOG_PERIOD = 5.0
 #: start-up gate (min_command_subscribers): check period, and consecutive matched checks needed
@@ -391,10 +391,7 @@ class AgentNode(Node):
         except OSError as exc:
             response.success, response.message = False, f"saving failed: {exc}"
             return response
-        if path is None:
-            response.success, response.message = False, "checkpoint_out is empty: nowhere to save"
-        else:
-            response.success, response.message = True, str(path)
+        response.success, response.message = save_reply(path, self.cfg.checkpoint_out, self.diverged)
         return response
 
     def _srv_pause(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
@@ -433,6 +430,17 @@ class AgentNode(Node):
             f"stopping ({reason}): {self.agent.steps} env steps, {self.learner.episodes} episodes, "
             f"counters {self.learner.counters}, bad messages {self.bad_messages}"
         )
+
+
+def save_reply(path: Path | None, checkpoint_out: str, diverged: bool) -> tuple[bool, str]:
+    """(success, message) of the save service after :meth:`AgentNode.save` returned ``path``."""
+    if path is not None:
+        return True, str(path)
+    if diverged:
+        kept = (f"{checkpoint_out} keeps the last good checkpoint" if Path(checkpoint_out).is_file() else
+                f"no good checkpoint was written ({checkpoint_out or 'checkpoint_out is empty'})")
+        return False, f"not saved: the learner diverged and a diverged learner is never saved; {kept}"
+    return False, "checkpoint_out is empty: nowhere to save"
 
 
 def main(argv: list[str] | None = None) -> int:

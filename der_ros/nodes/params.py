@@ -44,8 +44,6 @@ from dataclasses import is_dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from der_ros.configuration import (
     ConfigError,
     FieldSpec,
@@ -65,6 +63,7 @@ from der_ros.nodes.param_check import (
     parameter_error,
     section_error,
 )
+from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 
 __all__ = [
     "ConfigParameters",
@@ -306,8 +305,10 @@ def parse_overrides(items: Iterable[str]) -> dict[str, dict[str, Any]]:
         if not sep or not eq or node not in NODE_SECTIONS or not name:
             raise ConfigError(f"-p {item!r}: expected NODE:NAME=VALUE with NODE in {', '.join(NODE_SECTIONS)}")
         try:
-            out.setdefault(node, {})[name] = yaml.safe_load(value)
-        except yaml.YAMLError:
+            out.setdefault(node, {})[name] = load_yaml_text(value, f"-p {node}:{name}")
+        except YamlError as exc:
+            if not exc.syntax:  # YAML that says something ambiguous, too deep or too large
+                raise ConfigError(str(exc), key=name) from None
             out.setdefault(node, {})[name] = value  # not YAML: the text itself (the check names the type)
     return out
 
@@ -338,6 +339,15 @@ def build_graph_params(
     """
     params = copy.deepcopy(dict(base))
     origins: dict[str, dict[str, str]] = {}
+    for node in params:  # a ROS params file: node name -> {ros__parameters: ...}, nothing else (rcl refuses it)
+        if node not in NODE_SECTIONS:
+            raise ConfigError(f"{base_name}: top-level key {excerpt(node)} is not a node of the graph; a ROS params "
+                              f"file maps {', '.join(NODE_SECTIONS)} to {{ros__parameters: ...}}")
+        section = params[node]
+        if not isinstance(section, dict) or set(section) != {"ros__parameters"}:
+            found = ", ".join(excerpt(k) for k in section) if isinstance(section, dict) else type(section).__name__
+            raise ConfigError(f"{base_name}: section {node!r} is not a ROS params section: expected exactly the key "
+                              f"ros__parameters, found {found or 'nothing'}")
     for node in NODE_SECTIONS:
         section = params.setdefault(node, {})
         if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):

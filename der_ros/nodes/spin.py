@@ -118,6 +118,11 @@ def run_node(
             executor.shutdown(timeout_sec=1.0)
             node.destroy_node()
             rclpy.try_shutdown()
+            # The node is done and its exit code decided. Python's finalisation (seconds with torch
+            # loaded) puts SIG_DFL back for handlers it installed, so a Ctrl-C arriving then killed
+            # the process by SIGINT (exit -2 instead of the node's code); ignored handlers it keeps.
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, signal.SIG_IGN)
     return int(getattr(node, "exit_code", 0))
 
 

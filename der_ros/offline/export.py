@@ -35,12 +35,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import flatten_names, from_dict, unflatten_names
 from der_ros.contract import REWARD, STATE
 from der_ros.offline.episodes import iter_steps, mistyped_topics, resolve_topics
+from der_ros.yaml_loader import load_yaml
 from sumo_bridge.observation import POINT_FIELDS, ObservationConfig, encode_observation
 
 __all__ = ["Transitions", "build_transitions", "save_transitions", "load_transitions", "observation_config_of"]
@@ -101,7 +101,7 @@ def observation_config_of(reader: BagReader) -> Any | None:
     if not params_path.is_file():
         return None
     try:
-        params = yaml.safe_load(params_path.read_text()) or {}
+        params = load_yaml(params_path) or {}
         for node, prefix in (("agent_node", "observation"), ("bridge_node", "scenario.observation")):
             values = flatten_names((params.get(node) or {}).get("ros__parameters") or {})
             found = unflatten_names(values, prefix)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
@@ -40,10 +41,13 @@ log = logging.getLogger(__name__)
 
 def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = False,
              topics: list[str] | None = None, clock: bool = False, wait_subscribers: float = 0.0,
-             delay: float = 0.0, max_loops: int | None = None) -> int:
+             delay: float = 0.0, max_loops: int | None = None,
+             now: Callable[[], float] = time.perf_counter, sleep: Callable[[float], None] = time.sleep) -> int:
     """Publish the bag through ``node``'s publishers; returns the number of messages published.
 
     With ``loop`` the bag starts again at its end (``max_loops`` passes at most, None = forever).
+    ``now`` and ``sleep`` are the clock the schedule runs on (a test passes a simulated one, so
+    the schedule is checked exactly and without wall-clock thresholds).
     """
     if not rate > 0:
         raise ValueError(f"rate = {rate!r}, expected > 0")
@@ -105,12 +109,12 @@ def play_bag(node: Any, reader: BagReader, *, rate: float = 1.0, loop: bool = Fa
             if first is None:
                 first = msg.log_time
             due = max(0, msg.log_time - first) / 1e9 / rate
-            now = time.perf_counter()
+            t = now()
             if t0 is None:
-                t0 = now
-            wait = t0 + due - now
+                t0 = t
+            wait = t0 + due - t
             if wait > 0:
-                time.sleep(wait)
+                sleep(wait)
             if clock_pub is not None:
                 _publish_clock(clock_pub, msg)
             pubs[msg.topic].publish(bytes(msg.data))

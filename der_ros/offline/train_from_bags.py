@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from der_ros import yaml_loader
 from der_ros.agent.config import DQNConfig
 from der_ros.bag.reader import BagError, BagReader
 from der_ros.configuration import ConfigError, flatten_names, load_yaml, unflatten_names, validate
@@ -34,6 +34,7 @@ from der_ros.offline.episodes import scan_bag
 from der_ros.offline.export import Transitions, build_transitions
 from der_ros.replay.config import ReplayConfig
 from der_ros.train.envs import make_env
+from der_ros.yaml_loader import YamlError
 from sumo_bridge import NETWORK_ENV_IDS
 from sumo_bridge.observation import ObservationConfig
 
@@ -210,8 +211,8 @@ def recorded_scenario(bag: Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        params = ((yaml.safe_load(path.read_text()) or {}).get("bridge_node") or {}).get("ros__parameters") or {}
-    except yaml.YAMLError as exc:
+        params = ((yaml_loader.load_yaml(path) or {}).get("bridge_node") or {}).get("ros__parameters") or {}
+    except (YamlError, AttributeError) as exc:
         log.warning("cannot read %s: %s", path, exc)
         return None
     return unflatten_names(flatten_names(params), "scenario") or None

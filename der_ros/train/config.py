@@ -23,6 +23,7 @@ import yaml
 from der_ros.agent.config import DQNConfig
 from der_ros.configuration import ConfigError, from_dict, param, read_yaml_mapping, reject_unknown_keys, to_dict
 from der_ros.replay.config import ReplayConfig
+from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 
 __all__ = [
     "EnvConfig",
@@ -187,9 +188,9 @@ def parse_assignments(
             raise ConfigError(f"{source}: {label} {text!r}, expected section.key=value")
         key, raw = text.split("=", 1)
         try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{source}: {label} {text!r}: value is not valid YAML: {exc}") from None
+            value = load_yaml_text(raw, f"{source}: {label} {excerpt(key.strip())}")
+        except YamlError as exc:
+            raise ConfigError(str(exc)) from None
         items.append((key.strip(), value))
     return items
 

@@ -34,6 +34,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import threading
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -504,7 +505,9 @@ class InlineEvaluator(Evaluator):
 
 
 def _worker(spec: EvalSpec, jobs: Any, results: Any) -> None:
-    """Evaluation process: one environment (libsumo allows one per process), jobs until None."""
+    """Evaluation process: one environment (libsumo allows one per process), jobs until None.
+
+    ``jobs`` and ``results`` are the reading and the writing end of two pipes."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the trainer decides when to stop
@@ -516,51 +519,80 @@ def _worker(spec: EvalSpec, jobs: Any, results: Any) -> None:
     envs = _make_envs(spec, 1)
     try:
         while True:
-            try:
-                job = jobs.get(timeout=1.0)
-            except queue.Empty:
+            if not jobs.poll(1.0):
                 if os.getppid() != parent:  # the trainer died (e.g. SIGKILL): no orphan evaluator
                     break
                 continue
+            try:
+                job = jobs.recv()
+            except EOFError:  # the trainer closed its end (or died)
+                break
             if job is None:
                 break
             step, state, episodes = job
             try:
-                results.put(("ok", _evaluate(spec, envs, step, state, episodes).to_json()))
+                results.send(("ok", _evaluate(spec, envs, step, state, episodes).to_json()))
             except Exception as exc:  # noqa: BLE001 - reported to the trainer, which raises it
-                results.put(("error", f"evaluation at step {step} failed: {type(exc).__name__}: {exc}"))
+                results.send(("error", f"evaluation at step {step} failed: {type(exc).__name__}: {exc}"))
     finally:
         for env in envs:
             env.close()
 
 
 class ProcessEvaluator(Evaluator):
-    """Evaluates in a second process (its own environment), while training goes on."""
+    """Evaluates in a second process (its own environment), while training goes on.
+
+    Jobs and results travel over two pipes, not ``multiprocessing.Queue``: a queue holds named
+    semaphores, and when the trainer is SIGKILLed the resource tracker cleans them up with a
+    "leaked semaphore objects" warning on the terminal. A feeder thread sends the jobs (a state
+    dict can exceed the pipe's buffer: ``submit`` must not wait for the worker to read it).
+    """
 
     def __init__(self, spec: EvalSpec) -> None:
         ctx = mp.get_context("spawn")
-        self._jobs = ctx.Queue()
-        self._results = ctx.Queue()
-        self._proc = ctx.Process(target=_worker, args=(spec, self._jobs, self._results), daemon=True,
-                                 name="der-eval")  # fmt: skip
+        jobs_r, self._jobs = ctx.Pipe(duplex=False)
+        self._results, results_w = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_worker, args=(spec, jobs_r, results_w), daemon=True, name="der-eval")
         self._proc.start()
+        jobs_r.close()  # the worker's ends: only the worker holds them now (EOF when it dies)
+        results_w.close()
+        self._outbox: queue.Queue[Any] = queue.Queue()
+        self._feeder = threading.Thread(target=self._feed, name="der-eval-feeder", daemon=True)
+        self._feeder.start()
         self._pending = 0
 
+    def _feed(self) -> None:
+        while True:
+            job = self._outbox.get()
+            try:
+                self._jobs.send(job)
+            except OSError:  # the worker is gone; _take reports it
+                return
+            if job is None:
+                return
+
     def submit(self, step: int, state: dict[str, np.ndarray], episodes: int) -> None:
-        self._jobs.put((step, state, episodes))
+        self._outbox.put((step, state, episodes))
         self._pending += 1
 
     def _take(self, block: bool) -> list[EvalResult]:
         out: list[EvalResult] = []
         while self._pending:
             try:
-                kind, payload = self._results.get(block=block, timeout=1.0 if block else None)
-            except queue.Empty:
+                ready = self._results.poll(1.0 if block else 0)
+                message = self._results.recv() if ready else None
+            except (EOFError, OSError):
+                message, ready = None, False
+                if not self._proc.is_alive() or block:
+                    self._proc.join(timeout=5)
+                    raise RuntimeError(f"the evaluation process died (exit code {self._proc.exitcode})") from None
+            if not ready:
                 if block and not self._proc.is_alive():
                     raise RuntimeError(f"the evaluation process died (exit code {self._proc.exitcode})") from None
                 if block:
                     continue
                 break
+            kind, payload = message
             self._pending -= 1
             if kind == "error":
                 raise RuntimeError(payload)
@@ -579,7 +611,8 @@ class ProcessEvaluator(Evaluator):
 
     def close(self) -> None:
         if self._proc.is_alive():
-            self._jobs.put(None)
+            self._outbox.put(None)
+            self._feeder.join(timeout=30)
             self._proc.join(timeout=30)
             if self._proc.is_alive():
                 self._proc.terminate()

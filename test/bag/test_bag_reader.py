@@ -516,3 +516,18 @@ def test_bag_with_no_messages(tmp_path: Path) -> None:
     (d / "killed_0.mcap").write_bytes(b"")
     with pytest.raises(BagError, match="empty bag"):
         BagReader(d)
+
+
+def test_der_graph_reports_a_killed_recorders_bag_in_one_log_line(tmp_path: Path, caplog, recwarn) -> None:
+    """Issue 45: after a recorder kill, der graph printed Python's raw two-line ``warnings`` output."""
+    import logging
+
+    from der_ros.graph.run_summary import snapshot_from_bag
+
+    bag = _small_bag(tmp_path / "full", n=300)
+    cut = _cut_copy(bag, tmp_path / "cut", _mcap_file(bag).stat().st_size // 2, keep_metadata=False)
+    with caplog.at_level(logging.WARNING, logger="der.graph"):
+        snapshot_from_bag(cut, None)
+    assert not [w for w in recwarn if issubclass(w.category, TruncatedBagWarning)]  # nothing reaches warnings
+    lines = [r.getMessage() for r in caplog.records if "truncated" in r.getMessage()]
+    assert len(lines) == 1 and "\n" not in lines[0] and "recorder killed?" in lines[0]

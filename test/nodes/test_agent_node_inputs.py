@@ -105,9 +105,28 @@ def test_drops_are_logged_at_a_bounded_rate(ros_graph):  # noqa: F811
     assert sum(int(n) for x in lines for n in re.findall(r"stale_reward \+(\d+)", x)) <= 200
 
 
+def diverge(b: FakeBridge) -> None:
+    """Rewards of 1e30 (accepted: max_abs_reward is raised to 3e38) overflow the squared TD loss."""
+    for _ in range(5):
+        if b.proc.poll() is not None or "the learner diverged" in b.proc.output():
+            return
+        for i in range(EPISODE):
+            stamp = b.k * STEP_NS
+            b.pub_reward.publish(mc.make_reward(stamp, 0.0 if i == 0 else 1e30, i == EPISODE - 1, False))
+            b.pub_state.publish(mc.points_to_cloud(b.points(), stamp))
+            b.k += 1
+            if i < EPISODE - 1:  # a lockstep bridge waits for the answer (none after a terminal step)
+                wait_for(lambda s=stamp: any(ct.stamp_to_ns(c.header.stamp) >= s for c in list(b.cmds))
+                         or b.proc.poll() is not None or "the learner diverged" in b.proc.output(), 20,
+                         what="the agent to answer or diverge", procs=[])
+
+
+DIVERGING = {**AGENT_PARAMS, "checkpoint_every": 0, "max_abs_reward": 3e38}
+
+
 def test_a_diverged_learner_keeps_the_last_good_checkpoint(ros_graph, tmp_path):  # noqa: F811
     ckpt = tmp_path / "agent.pt"
-    b = FakeBridge(ros_graph, {**AGENT_PARAMS, "checkpoint_out": str(ckpt), "checkpoint_every": 0})
+    b = FakeBridge(ros_graph, {**DIVERGING, "checkpoint_out": str(ckpt)})
     for _ in range(3):
         b.run_episode()
     b.latest_metrics(lambda v: v.get("online/learn_steps", 0) >= 1, "learning to start")
@@ -115,14 +134,9 @@ def test_a_diverged_learner_keeps_the_last_good_checkpoint(ros_graph, tmp_path):
     assert res.success and finite_checkpoint(ckpt)
     good = ckpt.read_bytes()
     good_steps = int(read_checkpoint(ckpt)["agent"]["steps"])
-    (res,) = b.probe.set_parameters("agent_node", {"agent.lr": 1e30})  # a valid value that makes it diverge
-    assert res.successful
-    for _ in range(5):
-        if b.proc.poll() is not None:
-            break
-        for i in range(EPISODE):
-            b.step(terminal=i == EPISODE - 1, first=i == 0)
-            time.sleep(0.05)
+    (res,) = b.probe.set_parameters("agent_node", {"agent.lr": 1e30})  # issue 45: no longer a valid value
+    assert not res.successful and "agent.lr out of range" in res.reason and "Max: 1.0" in res.reason
+    diverge(b)
     assert b.proc.wait(timeout=30) == 1
     out = b.proc.output()
     assert "Traceback" not in out
@@ -132,3 +146,34 @@ def test_a_diverged_learner_keeps_the_last_good_checkpoint(ros_graph, tmp_path):
     assert f"kept the last good checkpoint {ckpt} (step {good_steps})" in errors[0]
     assert f"the state at divergence is in {diverged}" in errors[0]
     assert ckpt.read_bytes() == good and diverged.is_file()  # never overwritten, the bad state beside it
+
+
+def test_ctrl_c_while_a_diverged_agent_stops_still_exits_1(ros_graph, tmp_path):  # noqa: F811
+    """Issue 45: a Ctrl-C during the post-divergence drain made the agent exit -2 (SIGINT) instead of 1."""
+    import signal
+
+    b = FakeBridge(ros_graph, {**DIVERGING, "checkpoint_out": str(tmp_path / "agent.pt")})
+    for _ in range(2):
+        b.run_episode()
+    b.latest_metrics(lambda v: v.get("online/learn_steps", 0) >= 1, "learning to start")
+    diverge(b)
+    wait_for(lambda: "the learner diverged" in b.proc.output() or b.proc.poll() is not None, 30,
+             what="the divergence", procs=[])
+    while b.proc.poll() is None:  # Ctrl-C (again and again) while it drains, saves and shuts down
+        b.proc.signal(signal.SIGINT)
+        time.sleep(0.01)
+    assert b.proc.wait(timeout=30) == 1, b.proc.output()[-3000:]
+
+
+def test_the_save_service_says_why_a_diverged_learner_was_not_saved(tmp_path):
+    """Issue 45: after a divergence the service answered 'checkpoint_out is empty: nowhere to save'."""
+    from der_ros.nodes.agent_node import save_reply
+
+    good = tmp_path / "agent.pt"
+    assert save_reply(good, str(good), diverged=False) == (True, str(good))
+    assert save_reply(None, "", diverged=False) == (False, "checkpoint_out is empty: nowhere to save")
+    ok, message = save_reply(None, str(good), diverged=True)
+    assert not ok and message.startswith("not saved: the learner diverged") and "nowhere" not in message
+    assert f"no good checkpoint was written ({good})" in message
+    good.write_bytes(b"x")
+    assert save_reply(None, str(good), diverged=True)[1].endswith(f"{good} keeps the last good checkpoint")

@@ -55,7 +55,9 @@ class FakeBridge:
             and node.count_publishers("lane_change_cmd"),
             30, what="agent to join the graph", procs=[self.proc],
         )
-        time.sleep(0.3)  # the agent's readers may match our writers a moment after we see them
+        wait_for(  # our writers matched the agent's readers (count_subscribers above is only the graph's view)
+            lambda: self.pub_state.get_subscription_count() > 0 and self.pub_reward.get_subscription_count() > 0,
+            30, what="our state/reward writers to match the agent's readers", procs=[self.proc])
 
     def points(self) -> np.ndarray:
         pts = empty_points()

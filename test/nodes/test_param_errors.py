@@ -117,3 +117,92 @@ def test_a_node_names_its_params_file(ros_graph, tmp_path: Path) -> None:  # noq
     assert proc.wait(timeout=60) == 1
     assert f"could not start: {params_file}/agent_node/agent.batch_size = 0: expected >= 1" in proc.output()
     assert "Traceback" not in proc.output()
+
+
+# -- issue 45, finding 3: files, paths and flags are checked before any process starts --------------------
+def _refused(tmp_path: Path, *args: str) -> str:
+    run_dir = tmp_path / "run"
+    res = der_graph("--run-dir", str(run_dir), *args)
+    lines = [x for x in res.stderr.splitlines() if x.strip()]
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert len(lines) == 1 and lines[0].startswith("der graph: configuration error: "), res.stderr[-2000:]
+    assert not run_dir.exists()  # nothing started, nothing written
+    return lines[0].removeprefix("der graph: configuration error: ")
+
+
+def test_der_graph_refuses_a_missing_or_foreign_checkpoint_in(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.pt"
+    assert _refused(tmp_path, "-p", f"agent_node:checkpoint_in={missing}") == (
+        f"-p/agent_node/checkpoint_in = '{missing}': no such file")
+    foreign = tmp_path / "notes.pt"
+    foreign.write_text("not a checkpoint\n")
+    line = _refused(tmp_path, "-p", f"agent_node:checkpoint_in={foreign}")
+    assert line.startswith(f"-p/agent_node/checkpoint_in = '{foreign}': not a der_ros checkpoint (UnpicklingError")
+
+
+def test_der_graph_refuses_a_checkpoint_of_another_shape(tmp_path: Path) -> None:
+    from der_ros.agent.config import DQNConfig
+    from der_ros.agent.dqn import DQNAgent
+    from der_ros.replay.config import ReplayConfig
+
+    ckpt = tmp_path / "cartpole.pt"
+    DQNAgent((4,), __import__("numpy").float32, 2, DQNConfig(), ReplayConfig(capacity=256, kind="uniform")).save(ckpt)
+    line = _refused(tmp_path, "-p", f"agent_node:checkpoint_in={ckpt}")
+    assert line.startswith(f"-p/agent_node/checkpoint_in = '{ckpt}': a checkpoint for observations (4,) and 2 actions")
+
+
+def test_der_graph_refuses_an_output_it_cannot_write(tmp_path: Path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    assert _refused(tmp_path, "-p", f"recorder_node:output={blocker}/bag") == (
+        f"-p/recorder_node/output = '{blocker}/bag': cannot be created: {blocker} is not a directory")
+    full = tmp_path / "full_bag"
+    (full / "old").mkdir(parents=True)
+    assert _refused(tmp_path, "-p", f"recorder_node:output={full}") == (
+        f"-p/recorder_node/output = '{full}': exists and is not empty (not overwriting)")
+    assert _refused(tmp_path, "-p", f"agent_node:checkpoint_out={tmp_path}") == (
+        f"-p/agent_node/checkpoint_out = '{tmp_path}': is a directory, expected a file path")
+
+
+def test_der_graph_refuses_a_params_file_that_is_not_a_ros_params_file(tmp_path: Path) -> None:
+    train_cfg = REPO / "config" / "ring.yaml"  # a training config, not a ROS params file
+    line = _refused(tmp_path, "--params", str(train_cfg))
+    assert line.startswith(f"{train_cfg}: top-level key ") and "is not a node of the graph" in line
+    flat = tmp_path / "flat.params.yaml"
+    flat.write_text("agent_node:\n  agent.lr: 0.001\n")  # the values without ros__parameters
+    assert _refused(tmp_path, "--params", str(flat)) == (
+        f"{flat}: section 'agent_node' is not a ROS params section: expected exactly the key ros__parameters, "
+        "found 'agent.lr'")
+
+
+@pytest.mark.parametrize("steps", ["0", "-3"])
+def test_der_graph_refuses_a_number_of_steps_below_one_with_exit_2(tmp_path: Path, steps: str) -> None:
+    res = subprocess.run([sys.executable, "-m", "der_ros.cli", "graph", "--run-dir", str(tmp_path / "run"),
+                          "--steps", steps], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.strip() == f"der graph: configuration error: --steps = {steps}, expected >= 1"
+    assert not (tmp_path / "run").exists()
+
+
+def test_der_graph_refuses_an_agent_step_that_is_not_the_bridges(tmp_path: Path) -> None:
+    assert _refused(tmp_path, "-p", "agent_node:step_seconds=0") == (
+        "-p/agent_node/step_seconds = 0.0: expected the bridge's step, 0.5 s (scenario.step_length x "
+        "scenario.decision_interval)")
+    line = _refused(tmp_path, "-p", "bridge_node:scenario.decision_interval=2")
+    assert line.startswith(f"{PARAMS}/agent_node/step_seconds = 0.5: expected the bridge's step, 0.2 s")
+
+
+def test_der_graph_refuses_a_lying_params_file(tmp_path: Path) -> None:
+    """Issue 45, finding 2 through der graph: a repeated section, deep nesting, a huge value -- one line each."""
+    text = PARAMS.read_text()
+    dup = tmp_path / "dup.params.yaml"
+    dup.write_text(text + "\nagent_node:\n  ros__parameters:\n    agent.lr: 100\n")
+    first = next(i for i, x in enumerate(text.splitlines(), 1) if x.startswith("agent_node:"))
+    line = len(text.splitlines()) + 2
+    assert _refused(tmp_path, "--params", str(dup)) == (
+        f"{dup}: line {line}: key 'agent_node': duplicate key (first at line {first})")
+    deep = tmp_path / "deep.params.yaml"
+    deep.write_text("agent_node: " + "[" * 3000 + "]" * 3000 + "\n")
+    assert _refused(tmp_path, "--params", str(deep)).endswith("nested deeper than 64 levels")
+    huge = tmp_path / "huge.params.yaml"
+    huge.write_text("agent_node:\n  ros__parameters:\n    device: " + "x" * 3_000_000 + "\n")
+    assert len(_refused(tmp_path, "--params", str(huge))) < 200

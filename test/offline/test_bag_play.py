@@ -22,8 +22,21 @@ from der_ros.bag.reader import BagReader
 from der_ros.contract import QosSpec, merged_qos
 from der_ros.offline.play import play_bag
 
-#: receive time vs recorded time (scaled by the rate), per message, relative to the first message
-TIMING_TOLERANCE_S = 0.05
+
+class _SimClock:
+    """The player's clock in these tests: ``sleep`` advances it exactly (no wall-clock thresholds in
+    tests; the real player's timing is measured in bench/)."""
+
+    def __init__(self) -> None:
+        self.t = 1000.0
+        self.sleeps: list[float] = []
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.t += seconds
 
 
 def _expected(bag: Path, topics: set[str] | None = None) -> list[tuple[str, int, bytes]]:
@@ -31,13 +44,14 @@ def _expected(bag: Path, topics: set[str] | None = None) -> list[tuple[str, int,
 
 
 class _FakePub:
-    def __init__(self, topic: str, out: list[tuple[float, str, bytes]], qos: Any) -> None:
+    def __init__(self, topic: str, out: list[tuple[float, str, bytes]], qos: Any, clock: _SimClock) -> None:
         self.topic_name = topic
         self.out = out
         self.qos = qos
+        self.clock = clock
 
     def publish(self, data: Any) -> None:
-        self.out.append((time.perf_counter(), self.topic_name, data))
+        self.out.append((self.clock.now(), self.topic_name, data))
 
     def get_subscription_count(self) -> int:
         return 1
@@ -47,23 +61,28 @@ class _FakeNode:
     def __init__(self) -> None:
         self.out: list[tuple[float, str, bytes]] = []
         self.pubs: dict[str, _FakePub] = {}
+        self.clock = _SimClock()
 
     def create_publisher(self, cls: type, topic: str, qos: Any) -> _FakePub:
-        self.pubs[topic] = _FakePub(topic, self.out, qos)
+        self.pubs[topic] = _FakePub(topic, self.out, qos, self.clock)
         return self.pubs[topic]
+
+    def play(self, reader: BagReader, **kw: Any) -> int:
+        return play_bag(self, reader, now=self.clock.now, sleep=self.clock.sleep, **kw)
 
 
 def test_play_schedule_filter_and_qos_without_dds(tmp_path: Path) -> None:
     bag = tmp_path / "bag"
     record_env_bag(bag, episodes=1, max_episode_steps=6)
     node = _FakeNode()
-    n = play_bag(node, BagReader(bag), rate=10.0, topics=["/state", "/reward"])
+    n = node.play(BagReader(bag), rate=10.0, topics=["/state", "/reward"])
     want = _expected(bag, {"/state", "/reward"})
     assert n == len(want)
     assert [(t, d) for _, t, d in node.out] == [(t, d) for t, _, d in want]
     t0, l0 = node.out[0][0], want[0][1]
-    for (tp, _, _), (_, lt, _) in zip(node.out, want):
-        assert abs((tp - t0) - (lt - l0) / 1e9 / 10.0) < TIMING_TOLERANCE_S
+    assert [tp - t0 for tp, _, _ in node.out] == pytest.approx([(lt - l0) / 1e9 / 10.0 for _, lt, _ in want],
+                                                               abs=1e-9)  # the recorded gaps, scaled by the rate
+    assert all(s > 0 for s in node.clock.sleeps) and len(node.clock.sleeps) < n  # no sleep within one stamp
     from rclpy.qos import ReliabilityPolicy
 
     assert node.pubs["/state"].qos.depth == 50
@@ -76,7 +95,7 @@ def test_play_schedule_filter_and_qos_without_dds(tmp_path: Path) -> None:
     # a foreign bag without recorded QoS plays with the default QoS
     write_foreign_bag(tmp_path / "foreign", n=5)
     node2 = _FakeNode()
-    assert play_bag(node2, BagReader(tmp_path / "foreign"), rate=100.0) == 10
+    assert node2.play(BagReader(tmp_path / "foreign"), rate=100.0) == 10
     assert node2.pubs["/imu"].qos.depth == 10
     assert all(isinstance(d, bytes) for _, _, d in node.out + node2.out)  # raw CDR, never re-serialised
     with pytest.raises(ValueError, match="rate"):
@@ -87,7 +106,7 @@ def test_play_loop_and_synthetic_clock(tmp_path: Path) -> None:
     write_foreign_bag(tmp_path / "foreign", n=4)
     want = _expected(tmp_path / "foreign")
     node = _FakeNode()
-    assert play_bag(node, BagReader(tmp_path / "foreign"), rate=50.0, loop=True, max_loops=3, clock=True) == 3 * len(want)
+    assert node.play(BagReader(tmp_path / "foreign"), rate=50.0, loop=True, max_loops=3, clock=True) == 3 * len(want)
     data = [(t, d) for _, t, d in node.out if t != "/clock"]
     assert data == [(t, d) for t, _, d in want] * 3
     clocks = [d for _, t, d in node.out if t == "/clock"]
@@ -142,20 +161,8 @@ def test_play_into_a_ros_graph(ros_graph: Any, tmp_path: Path, kind: str) -> Non
         assert len(recv) == len(sent), topic
         for r, d in zip(recv, sent):
             assert r[: len(d)] == d and r[len(d):] == bytes(len(r) - len(d)) and len(r) - len(d) < 4, topic
-    # timing: the k-th message received on a topic is the k-th recorded one (order checked above)
-    rec_times: dict[str, list[int]] = {}
-    for t, lt, _ in want:
-        rec_times.setdefault(t, []).append(lt)
-    t_first = min(r[0] for r in received)
-    l_first = want[0][1]
-    worst = 0.0
-    for tr, topic, _ in received:
-        lt = rec_times[topic].pop(0)
-        worst = max(worst, abs((tr - t_first) - (lt - l_first) / 1e9 / rate))
-    print(f"play timing: worst error {worst * 1000:.1f} ms over {len(received)} messages")
-    assert worst < TIMING_TOLERANCE_S, f"worst timing error {worst * 1000:.1f} ms"
-    span = (want[-1][1] - l_first) / 1e9 / rate
-    assert span > 1.0  # the bag is long enough for the timing check to mean something
+    # the schedule (recorded gaps / rate) is checked exactly on a simulated clock above; wall-clock timing
+    # through DDS is a benchmark's business, never a test threshold
 
 
 def test_a_bag_with_other_types_on_our_topics_or_no_ros_messages_is_not_played(tmp_path: Path) -> None:

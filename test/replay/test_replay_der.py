@@ -348,6 +348,12 @@ def test_max_log_weight_limit_depends_on_h2_capacity():
     cfg = ReplayConfig(kind="der", capacity=1000, max_log_weight=695.0)  # 700 - ln(12800) = 690.5
     with pytest.raises(Exception, match="max_log_weight = 695"):
         make_replay(cfg, (2,), np.float32, 128, 0)
+    # the limit is 700 - ln(h2_capacity), computed by hand here: the same value passes a small H2
+    for h2, limit in ((1, 700.0), (10, 697.697), (12_800, 690.543), (100_000, 688.487), (10**8, 681.579)):
+        ReplayConfig(kind="der", capacity=10**9, h2_capacity=h2, max_log_weight=limit - 0.001).check()
+        with pytest.raises(Exception, match=rf"expected <= 700.0 - ln\(h2_capacity\) = {limit:.1f} "):
+            ReplayConfig(kind="der", capacity=10**9, h2_capacity=h2, max_log_weight=limit + 0.001).check()
+    der(h2_capacity=10, max_log_weight=695.0)  # accepted: 695 < 697.7
 
 
 def test_lambda_zero_is_uniform_dqn_and_one_is_h2_only():

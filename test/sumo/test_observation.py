@@ -170,7 +170,18 @@ def test_the_near_gap_channel_reads_the_gap_half_a_second_later_when_it_closes(s
 def test_a_bad_look_ahead_is_refused_naming_the_field(bad: float) -> None:
     with pytest.raises(ConfigError, match=r"near_gap_horizon = "):
         validate(ObservationConfig(near_gap_horizon=bad))
-        ObservationConfig(near_gap_horizon=bad).check()
+
+
+@pytest.mark.parametrize("name", ["neighbour_range", "near_gap_range", "near_gap_horizon", "required_decel_scale"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_the_observation_check_itself_refuses_a_non_finite_scale(name: str, bad: float) -> None:
+    """``check()`` on its own (an ObservationConfig built in code is never passed through validate())."""
+    cfg = ObservationConfig()
+    setattr(cfg, name, bad)
+    with pytest.raises(ConfigError, match=rf"^{name} = {bad!r}, expected a finite number$"):
+        cfg.check()
+    setattr(cfg, name, getattr(ObservationConfig(), name))
+    cfg.check()  # the defaults pass
 
 
 @pytest.mark.parametrize("bad", [-1.0, 100.5, float("nan"), float("inf")])
