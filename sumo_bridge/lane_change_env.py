@@ -141,7 +141,7 @@ import gymnasium as gym
 import numpy as np
 
 from der_ros.contract import LaneLine
-from sumo_bridge.network_build import BuiltNetwork, build_network
+from sumo_bridge.network_build import BuiltNetwork, build_network, build_scenario_network
 from sumo_bridge.observation import (
     POINT_FIELDS,
     SLOT_NAMES,
@@ -154,13 +154,17 @@ from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
 from sumo_bridge.scene import SCENE_VARS, Scene, SceneTracker, read_lanes
 from sumo_bridge.sim_backend import SumoSimulation, constants
 from sumo_bridge.warm_state import WarmState
+from sumo_bridge.flow_scenario import FlowScenarioMixin
+from sumo_bridge.scenario_file import ScenarioSpec, load_scenario
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "EVENTS", "ACTION_MEANINGS"]
+__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "make_scenario_env", "EVENTS", "ACTION_MEANINGS"]
 
 #: Possible values of ``info["event"]`` (the outcome, in an episode's last step; None before).
-EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit")
+#: ``missed``: a file scenario's goal edge was missed (sumo_bridge.flow_scenario).
+EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit", "missed")
+#: The paper's action set (the default); a scenario may add "faster", "slower" (ScenarioConfig.actions).
 ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
 
 _tc = constants()
@@ -179,7 +183,7 @@ _URBAN_CORRIDOR = ("101", "102", "100", "103", "104")
 _INVALID_DISTANCE = 1e10
 
 
-class LaneChangeEnv(gym.Env):
+class LaneChangeEnv(FlowScenarioMixin, gym.Env):
     """Gymnasium env of the section 5.1 lane-change task (see the module docstring)."""
 
     metadata: dict[str, Any] = {"render_modes": []}
@@ -189,12 +193,25 @@ class LaneChangeEnv(gym.Env):
             raise ValueError(f"render_mode = {render_mode!r}: use ScenarioConfig(gui=True) to watch in sumo-gui")
         self.config = config if config is not None else ScenarioConfig.ring()
         cfg = self.config
-        self.action_space = gym.spaces.Discrete(3)
+        self.action_space = gym.spaces.Discrete(len(cfg.actions))
+        self.action_meanings: tuple[str, ...] = tuple(cfg.actions)
         self.observation_space = observation_space(cfg.observation)
         self.step_seconds: float = cfg.step_seconds
         self.ego_id = "ego"  # ring: always "ego"; urban: "ego.<n>", one per episode
         self._ego_serial = 0
-        self.network: BuiltNetwork = build_network(cfg.network)
+        self._spec: ScenarioSpec | None = load_scenario(cfg.file) if cfg.file else None
+        if self._spec is not None:
+            net = self._spec.network
+            self.network: BuiltNetwork = build_scenario_network(cfg.network, net.net, net.nodes, net.edges,
+                                                                net.connections, self._spec.demand)  # fmt: skip
+        else:
+            self.network = build_network(cfg.network)
+        self._v_departed, self._v_colliding = _V_DEPARTED, _V_COLLIDING
+        self._edge_lengths: dict[str, float] = {}
+        self._halted_s = 0.0  # file scenarios: seconds the ego has been halted in the miss zone
+        self._target_speed: float | None = None  # speed actions: the ego's target speed (None: SUMO's own)
+        self._ego_road_pos_speed: tuple[str, float, float] = ("", 0.0, 0.0)
+        self._goal_edge = self._spec.goal.edge if self._spec is not None else None
         self._tc = constants()
         self._sim: SumoSimulation | None = SumoSimulation(
             self._sumo_args(cfg.seed), backend=cfg.backend, gui=cfg.gui, owner=f"LaneChangeEnv({cfg.network})"
@@ -231,17 +248,18 @@ class LaneChangeEnv(gym.Env):
         cfg = self.config
         return [
             "-n", str(self.network.net_file),
-            "-r", str(self.network.route_file),
+            "-r", ",".join(str(p) for p in self._spec.demand) if self._spec is not None else str(self.network.route_file),
             "--step-length", repr(cfg.step_length),
             "--seed", str(int(seed)),
             "--collision.action", "warn",
             "--collision.check-junctions", "true",
             "--collision.mingap-factor", "0",
-            "--time-to-teleport", "-1",
+            "--time-to-teleport", str(self._spec.traffic.teleport_seconds) if self._spec is not None else "-1",
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
             *(["--start", "true", "--quit-on-end", "true"] if cfg.gui else []),
+            *(["--save-state.rng", "true"] if self._spec is not None else []),
             *cfg.sumo_args,
         ]  # fmt: skip
 
@@ -271,7 +289,10 @@ class LaneChangeEnv(gym.Env):
         coordinate, so gaps to vehicles on the next or previous edge need no extra query.
         """
         api = self.api
-        edges = _RING_EDGES if self.config.network == "ring" else _URBAN_CORRIDOR
+        if self._spec is not None:
+            edges = self._spec.ego.route
+        else:
+            edges = _RING_EDGES if self.config.network == "ring" else _URBAN_CORRIDOR
         seq = list(edges) + ([edges[0]] if self._closed_corridor else [])
         offsets: dict[str, float] = {}
         s = 0.0
@@ -309,7 +330,9 @@ class LaneChangeEnv(gym.Env):
             self._rng = np.random.default_rng(self.config.seed if seed is None else seed)
             self._need_load = True
         self._reset_episode_state()
-        if self.config.network == "ring":
+        if self._spec is not None:
+            self._reset_file()
+        elif self.config.network == "ring":
             self._reset_ring()
         else:
             self._reset_urban()
@@ -510,9 +533,11 @@ class LaneChangeEnv(gym.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() called after the episode ended; call reset()")
-        if type(action) is not int or not 0 <= action <= 2:  # fast path for plain ints
-            if action not in (0, 1, 2) or isinstance(action, bool):
-                raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
+        n = len(self.action_meanings)
+        if type(action) is not int or not 0 <= action < n:  # fast path for plain ints
+            if action not in range(n) or isinstance(action, bool):
+                meanings = ", ".join(f"{i} ({m})" for i, m in enumerate(self.action_meanings))
+                raise ValueError(f"action = {action!r}, expected one of {meanings}")
         reward, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(int(action))
         if self._commit and self._target_reached and not (terminated or truncated):
             # the authors' commit structure: the rest of the horizon runs inside this transition (no-op
@@ -540,7 +565,9 @@ class LaneChangeEnv(gym.Env):
         Returns (reward, terminated, truncated, event, caused, mean speed, ego gone).
         """
         cfg, api = self.config, self.api
-        if a != 0 and not (self._target_reached and self._hold_target):
+        if a >= 3:
+            self._speed_action(a)
+        elif a != 0 and not (self._target_reached and self._hold_target):
             new_lane = self._ego_lane + 1 if a == 1 else self._ego_lane - 1
             if 0 <= new_lane < self._ego_lane_count:
                 api.vehicle.changeLane(self.ego_id, new_lane, self.step_seconds)
@@ -574,6 +601,10 @@ class LaneChangeEnv(gym.Env):
             )
             if caused:
                 reward += cfg.reward_collision
+        elif self._goal_edge is not None:
+            if not ego_gone and not self._target_reached:
+                r, terminated, event = self._edge_goal()
+                reward += r
         elif self._target_reached:
             pass
         elif not ego_gone and self._ego_lane == cfg.target:
@@ -710,6 +741,7 @@ class LaneChangeEnv(gym.Env):
         self._slots = best
         self._ego_lane, self._ego_lane_count = int(ego_lane), n_lanes
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
+        self._ego_road_pos_speed = (ego_road, float(ego_pos), float(ego_speed))
         self._obs = encode_point_rows(rows, cfg.observation)
         self._points = np.array(rows, dtype=np.float64)
 
@@ -794,4 +826,13 @@ def make_urban_env(config: ScenarioConfig | dict[str, Any] | None = None, scenar
                    render_mode: str | None = None, **overrides: Any) -> LaneChangeEnv:  # fmt: skip
     """Entry point of ``der_ros/LaneChangeUrban-v0`` (same keyword arguments as the ring)."""
     return LaneChangeEnv(scenario_from_kwargs("urban", config if config is not None else scenario, **overrides),
+                         render_mode=render_mode)  # fmt: skip
+
+
+def make_scenario_env(config: ScenarioConfig | dict[str, Any] | str | None = None,
+                      scenario: dict[str, Any] | str | None = None, render_mode: str | None = None,
+                      **overrides: Any) -> LaneChangeEnv:  # fmt: skip
+    """Entry point of ``der_ros/LaneChangeScenario-v0``: ``gym.make(id, scenario="path.yaml")`` or
+    ``scenario={"file": "path.yaml", <ScenarioConfig field overrides>}`` (docs/scenarios.md)."""
+    return LaneChangeEnv(scenario_from_kwargs("scenario", config if config is not None else scenario, **overrides),
                          render_mode=render_mode)  # fmt: skip

@@ -245,7 +245,26 @@ def scenario_from_kwargs(
     Accepts a ready :class:`ScenarioConfig`, a ``scenario``-style mapping, and/or field
     overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``).
     """
-    preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
+    if isinstance(config, str):
+        config = {"file": config}
+    if network == "scenario":  # a scenario file (sumo_bridge.scenario_file): its values are the defaults
+        from sumo_bridge.scenario_file import load_scenario_config
+
+        file = (to_dict(config) if isinstance(config, ScenarioConfig) else dict(config or {})).get("file") or overrides.get("file")
+        if not file:
+            raise ConfigError("scenario: file missing, expected the path of a scenario file (or a shipped name: exit)")
+        base = load_scenario_config(file)
+        network = base.network
+
+        def preset(**kw: Any) -> ScenarioConfig:
+            return from_dict(ScenarioConfig, {**to_dict(base), **kw}, source=str(file))
+
+        if isinstance(config, dict):
+            config = {k: v for k, v in config.items() if k not in ("file", "network")}
+        overrides.pop("file", None)
+        overrides.pop("network", None)
+    else:
+        preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
     if isinstance(config, ScenarioConfig):
         data = to_dict(config)
     elif config is None:

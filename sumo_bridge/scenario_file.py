@@ -27,7 +27,8 @@ Layout (paths relative to the scenario file)::
     horizon: 60                         # decisions per episode (max_episode_steps)
     reward: {success: 100, collision: -100, missed: 0, min_speed: 0.1}
     actions: [keep, left, right]        # or [keep, left, right, faster, slower]
-    traffic: {warmup_seconds: 120, ego_gap_seconds: 1, miss_zone: 100, halt_speed: 0.5, halt_seconds: 2}
+    traffic: {warmup_seconds: 120, ego_gap_seconds: 1, miss_zone: 100, halt_speed: 0.5, halt_seconds: 2,
+              teleport_seconds: 20}
     settings: {...}                     # any other sumo_bridge.scenario.ScenarioConfig field
 
 YAML is read by :func:`read_yaml_text` (``yaml.safe_load``, the one place to switch to the
@@ -120,6 +121,9 @@ class TrafficSpec:
     """m/s below which the ego counts as halted"""
     halt_seconds: float = 2.0
     """seconds halted (in the miss zone, on a wrong lane) that make a miss"""
+    teleport_seconds: float = -1.0
+    """SUMO's --time-to-teleport: a vehicle blocked this long is moved on (-1 = never; the ego's episode
+    ends as missed long before)"""
 
 
 @dataclass(frozen=True)
@@ -342,7 +346,8 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
             raise _fail(path, "ego.lane", f"{lane}: the ego would start on a lane that leads to the goal already")
         goal = GoalSpec(edge=str(edge), lanes=goal_lanes)
     traffic_raw = _mapping(path, top.get("traffic"), "traffic", tuple(f.name for f in dataclasses.fields(TrafficSpec)))
-    traffic = TrafficSpec(**{k: _number(path, f"traffic.{k}", v, 0.0) for k, v in traffic_raw.items()})
+    traffic = TrafficSpec(**{k: _number(path, f"traffic.{k}", v, -1.0 if k == "teleport_seconds" else 0.0)
+                             for k, v in traffic_raw.items()})  # fmt: skip
     config = _config(path, top, name, builtin, lane, goal, goal_lanes)
     return ScenarioSpec(path=path, name=name, network=src, demand=demand, ego=EgoSpec(tuple(route), lane, str(ego_raw.get("type", "ego")), depart_pos),
                         goal=goal, traffic=traffic, config=config, lane_counts=lane_counts)  # fmt: skip
