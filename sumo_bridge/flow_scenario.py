@@ -41,6 +41,7 @@ target).
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -89,22 +90,24 @@ class FlowScenarioMixin:
         spec, api = self._spec, self.api
         assert spec is not None and self._rng is not None
         sumo_seed = int(self._rng.integers(0, 2**31 - 1))
-        self.sim.load(self._sumo_args(sumo_seed))
-        self.api.simulation.subscribe([self._v_departed, self._v_colliding])
-        if not self._offsets:
-            self._build_corridor()
         state = self._state_file(sumo_seed)
-        if state.is_file():
-            api.simulation.loadState(str(state))
-            api.simulation.subscribe([self._v_departed, self._v_colliding])  # loadState drops subscriptions
-            for vid in api.vehicle.getIDList():  # loaded vehicles do not 'depart': subscribe them here
-                api.vehicle.subscribe(vid, self._vehicle_vars)
-        else:
+        if not state.is_file():
+            self.sim.load(self._sumo_args(sumo_seed))
+            self.api.simulation.subscribe([self._v_departed, self._v_colliding])
             self._warmup(spec.traffic.warmup_seconds)
             state.parent.mkdir(parents=True, exist_ok=True)
-            tmp = state.with_name(f"{state.stem}.{id(self)}.tmp.xml")
+            tmp = state.with_name(f"{state.stem}.{os.getpid()}.{id(self)}.tmp.xml")
             api.simulation.saveState(str(tmp))
             tmp.replace(state)
+        # a fresh load + the saved state also right after saving: the simulation carries more than the
+        # state file holds, so the first reset of a traffic seed is made the same as every later one
+        self.sim.load(self._sumo_args(sumo_seed))
+        if not self._offsets:
+            self._build_corridor()
+        api.simulation.loadState(str(state))
+        api.simulation.subscribe([self._v_departed, self._v_colliding])  # loadState drops subscriptions
+        for vid in api.vehicle.getIDList():  # loaded vehicles do not 'depart': subscribe them here
+            api.vehicle.subscribe(vid, self._vehicle_vars)
         if self._scene is not None:
             self._scene.forget_sizes()
         self._episodes_since_load = 0

@@ -54,6 +54,8 @@ from der_ros.train.evaluation import (
     run_episodes,
 )
 from sumo_bridge import ENV_NETWORKS
+from sumo_bridge.scenario import scenario_from_kwargs
+from sumo_bridge.scenario_file import load_scenario
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
 
 __all__ = [
@@ -91,8 +93,20 @@ class GapAcceptanceParams:
 
 
 def _network(env_cfg: EnvConfig) -> str | None:
-    """'ring' / 'urban' for the SUMO ids, None otherwise."""
-    return ENV_NETWORKS.get(env_cfg.id)
+    """'ring' / 'urban' / a scenario file's name for the SUMO ids, None otherwise."""
+    network = ENV_NETWORKS.get(env_cfg.id)
+    if network == "scenario":
+        return scenario_from_kwargs("scenario", (env_cfg.kwargs or {}).get("scenario")).network
+    return network
+
+
+def _goal_by_route(env_cfg: EnvConfig) -> bool:
+    """True for a scenario whose goal is an edge of the ego's route (an exit): SUMO's own model gets
+    there by its strategic lane changes, so the ``sumo`` baseline commands nothing (keep)."""
+    if ENV_NETWORKS.get(env_cfg.id) != "scenario":
+        return False
+    cfg = scenario_from_kwargs("scenario", (env_cfg.kwargs or {}).get("scenario"))
+    return bool(cfg.file) and load_scenario(cfg.file).goal.edge is not None
 
 
 def baseline_names(env_cfg: EnvConfig) -> tuple[str, ...]:
@@ -189,7 +203,8 @@ def evaluate_baseline(
     envs = [make_env_from_config(baseline_env_config(env_cfg, name), seed_base + i)
             for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
     try:
-        eps = run_episodes(baseline_policy(name, gap), envs, seeds, episodes, episodes_per_seed)
+        policy = baseline_policy("keep" if name == "sumo" and _goal_by_route(env_cfg) else name, gap)
+        eps = run_episodes(policy, envs, seeds, episodes, episodes_per_seed)
     finally:
         for env in envs:
             env.close()
@@ -298,8 +313,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Mean return |",
-             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Missed | Mean return |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for path in args.config:
         cfg = load_experiment_config(path)
         env_cfg, per_seed = cfg.env, cfg.train.eval_episodes_per_seed
@@ -327,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
         for job in jobs:
             r = results[job.out_dir]
             lines.append(f"| {env_cfg.id} | {job.name} | {r.n} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
-                         f"| {r.time_limit_rate:.3f} | {r.mean_return:.2f} |")  # fmt: skip
+                         f"| {r.time_limit_rate:.3f} | {r.rate('missed'):.3f} | {r.mean_return:.2f} |")  # fmt: skip
     if not args.tune:
         print("\n".join(lines))
     return 0
