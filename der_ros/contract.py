@@ -83,8 +83,11 @@ EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT = "success", "collision",
 EPISODE_ENDS = (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT)
 EPISODE_EVENTS = (EPISODE_START, *EPISODE_ENDS)
 
-#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``)
-ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right")
+#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``): 0 keep lane,
+#: 1 change left, 2 change right (the paper's set, every scenario's default), 3 faster, 4 slower (the ego's
+#: target speed one ``speed_step`` up / down; only in scenarios whose ``actions`` list them). A scenario's
+#: set is a prefix of these; the bridge refuses a larger index as OUT_OF_RANGE (counted, sumo_bridge.lockstep).
+ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right", "faster", "slower")
 
 #: ``reward.header.frame_id`` = this prefix + the action the bridge applied to reach the state
 APPLIED_ACTION_PREFIX = "applied_action="
@@ -347,7 +350,8 @@ TOPICS: tuple[TopicSpec, ...] = (
         publisher="agent_node",
         subscribers=("bridge_node",),
         rate="1 per decision step",
-        meaning="buttons[0] = action (0 keep, 1 left, 2 right); header.stamp = stamp of the state it answers; "
+        meaning="buttons[0] = action (0 keep, 1 left, 2 right; 3 faster, 4 slower where the scenario has speed "
+        "actions, else refused and counted as out_of_range); header.stamp = stamp of the state it answers; "
         "header.frame_id = sender id (the bridge locks onto the first sender)",
         units="action index",
     ),

@@ -17,10 +17,15 @@ change lanes. The ego vehicle starts on ``ego_lane`` among background traffic an
 The ego's own lane-change model is off (``laneChangeMode 0``): a commanded change is executed
 in the next simulation step whether safe or not, so an unsafe change really collides.
 
-Actions (``Discrete(3)``)
--------------------------
+Actions (``Discrete(3)``, or ``Discrete(5)`` with speed actions)
+-----------------------------------------------------------------
 0 keep lane, 1 change left (lane index + 1), 2 change right (lane index - 1). A direction with
 no lane is a no-op, and so is every change once the target lane is reached (see below).
+Scenarios whose ``actions`` add them (:mod:`sumo_bridge.flow_scenario`): 3 faster, 4 slower.
+
+Scenario files (``ScenarioConfig.file``, ``der_ros/LaneChangeScenario-v0``; docs/scenarios.md) set
+up their own road and traffic (:mod:`sumo_bridge.flow_scenario`); a goal edge (an exit) adds the
+event ``missed``.
 
 Observation
 -----------
@@ -164,8 +169,9 @@ __all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "make_scenario_en
 #: Possible values of ``info["event"]`` (the outcome, in an episode's last step; None before).
 #: ``missed``: a file scenario's goal edge was missed (sumo_bridge.flow_scenario).
 EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit", "missed")
-#: The paper's action set (the default); a scenario may add "faster", "slower" (ScenarioConfig.actions).
-ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
+#: Every action by index (der_ros.contract.ACTION_NAMES): the paper's three (the default set) and the speed
+#: actions a scenario may add (ScenarioConfig.actions); ``env.action_meanings`` is the scenario's prefix.
+ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right", "faster", "slower")
 
 _tc = constants()
 _V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD = _tc.VAR_SPEED, _tc.VAR_LANE_INDEX, _tc.VAR_LANEPOSITION, _tc.VAR_ROAD_ID

@@ -349,6 +349,10 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
     traffic = TrafficSpec(**{k: _number(path, f"traffic.{k}", v, -1.0 if k == "teleport_seconds" else 0.0)
                              for k, v in traffic_raw.items()})  # fmt: skip
     config = _config(path, top, name, builtin, lane, goal, goal_lanes)
+    most = max((lane_counts[e] for e in route), default=0)
+    if not builtin and config.observation.max_lanes < most:
+        raise _fail(path, "settings.observation.max_lanes", f"{config.observation.max_lanes}, expected >= {most} (the "
+                    "most lanes on the ego's route)")  # fmt: skip
     return ScenarioSpec(path=path, name=name, network=src, demand=demand, ego=EgoSpec(tuple(route), lane, str(ego_raw.get("type", "ego")), depart_pos),
                         goal=goal, traffic=traffic, config=config, lane_counts=lane_counts)  # fmt: skip
 

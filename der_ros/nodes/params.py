@@ -58,6 +58,8 @@ from der_ros.configuration import (
 )
 from der_ros.contract import COMMAND, STATE, default_record_topics
 from der_ros.nodes.node_configs import NODE_SECTIONS
+from sumo_bridge.network_build import NETWORK_NAMES
+from sumo_bridge.scenario_file import load_scenario_config
 from der_ros.nodes.param_check import (
     argv_origin,
     check_node_parameters,
@@ -351,6 +353,10 @@ def build_graph_params(
 
     put("bridge_node", "max_steps", int(steps), "--steps")
     put("bridge_node", "scenario.network", scenario, "--scenario")
+    if scenario not in NETWORK_NAMES:  # a scenario file: its fields become the bridge's scenario.* parameters
+        for name, value in flatten_names(to_dict(load_scenario_config(scenario))).items():  # the file wins over base
+            put("bridge_node", f"scenario.{name}", list(value) if isinstance(value, tuple) else value, "--scenario")
+        put("agent_node", "n_actions", len(load_scenario_config(scenario).actions), "--scenario")
     if free_run:
         put("bridge_node", "mode", "free_run", "--free-run")
     if replay is not None:
