@@ -310,6 +310,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="tuned thresholds (config/baselines.yaml)")
     parser.add_argument("--out", default="runs/baselines", help="folder of the cached evaluations")
     parser.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
+    parser.add_argument("--only", action="append", default=None, metavar="NAME",
+                        help="run only this baseline (repeatable; default: all of the environment's)")
+    parser.add_argument("--tuning-seeds", action="store_true",
+                        help="evaluate on the tuning seeds instead of the held-out evaluation seeds")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -335,9 +339,15 @@ def run(args: argparse.Namespace) -> int:
             print(md.read_text())
             continue
         gap = load_gap_params(net, args.params) if net else None
-        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, EVAL_SEED_BASE,
-                            gap if name == "gap_acceptance" else None, str(Path(args.out) / (net or env_cfg.id) / name))
-                for name in baseline_names(env_cfg)]  # fmt: skip
+        names = baseline_names(env_cfg)
+        unknown = sorted(set(args.only or ()) - set(names))
+        if unknown:
+            raise ConfigError(f"--only {unknown[0]!r}: not a baseline of {env_cfg.id}, expected one of {', '.join(names)}")
+        base = TUNING_EVAL_SEED_BASE if args.tuning_seeds else EVAL_SEED_BASE
+        sub = "tuning-seeds" if args.tuning_seeds else ""
+        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, base, gap if name == "gap_acceptance" else None,
+                            str(Path(args.out) / sub / (net or env_cfg.id) / name))
+                for name in names if not args.only or name in args.only]  # fmt: skip
         results = run_baselines(jobs, args.jobs)
         for job in jobs:
             r = results[job.out_dir]
