@@ -8,7 +8,7 @@ Traffic and resets
 The background traffic comes from the scenario's demand files (flows) and keeps running between
 episodes. ``reset(seed=s)`` reloads the simulation with SUMO seed drawn from ``s`` and puts back the
 *warmed state* of that traffic seed: ``warmup_seconds`` of traffic saved once with SUMO's random
-number state (``--save-state.rng``) under ``<network build>/states/<seed>.xml``, so the first seeded
+number state (``--save-state.rng``) under ``<network build>/states/<seed>_w<warm-up>_dt<step>.xml``, so the first seeded
 reset of a traffic seed costs the warm-up (~0.5 s for the exit scenario) and every later one a
 ``load`` + ``loadState``; a seeded reset is a pure function of ``s``. A reset without a seed keeps the
 traffic running: the last ego is removed, ``ego_gap_seconds`` of traffic run, and the next ego is
@@ -83,7 +83,10 @@ class FlowScenarioMixin:
                            f"ego.depart_pos {list(spec.ego.depart_pos)} in 30 s of traffic (demand too light?)")  # fmt: skip
 
     def _state_file(self, sumo_seed: int) -> Path:
-        return Path(self.network.directory) / "states" / f"{sumo_seed}.xml"
+        # the network directory is keyed by the sources and demand; the warm-up and the step are in the name
+        assert self._spec is not None
+        warm, dt = self._spec.traffic.warmup_seconds, self.config.step_length
+        return Path(self.network.directory) / "states" / f"{sumo_seed}_w{warm:g}_dt{dt:g}.xml"
 
     def _load_warm_state(self) -> None:
         """Load (a fresh SUMO seed from the env's RNG) and put back that seed's warmed traffic."""
