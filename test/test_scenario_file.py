@@ -176,3 +176,29 @@ def test_tiny_user_scenario_trains_and_evaluates_in_process(tmp_path: Path) -> N
     assert saved.env.kwargs["scenario"]["file"] == str(TINY / "tiny.yaml")
     assert to_dict(load_scenario_config(TINY / "tiny.yaml"))["network"] == "tiny"
     assert libsumo_in_use() is None
+
+
+def test_bridge_gate_refuses_actions_the_scenario_lacks() -> None:
+    from sumo_bridge.lockstep import CommandGate, Verdict
+
+    for n_actions, ok in ((3, False), (5, True)):
+        gate = CommandGate(n_actions=n_actions)
+        gate.open(1)
+        verdict, _ = gate.offer(1, [4], sender="agent")
+        assert (verdict is Verdict.ACCEPTED) == ok
+        assert gate.counters[Verdict.OUT_OF_RANGE.value] == (0 if ok else 1)
+
+
+def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: Path) -> None:
+    from der_ros.graph.evaluation import scenario_env_config
+    from der_ros.nodes.params import build_graph_params
+
+    params = build_graph_params({}, steps=100, scenario=str(TINY / "tiny.yaml"), run_dir=tmp_path)
+    bridge = params["bridge_node"]["ros__parameters"]
+    assert bridge["scenario.network"] == "tiny" and bridge["scenario.file"] == str(TINY / "tiny.yaml")
+    assert bridge["scenario.actions"] == ["keep", "left", "right", "faster", "slower"]
+    assert params["agent_node"]["ros__parameters"]["n_actions"] == 5
+    env_cfg = scenario_env_config(bridge)
+    assert env_cfg.id == SCENARIO_ENV_ID and env_cfg.kwargs["scenario"]["file"] == str(TINY / "tiny.yaml")
+    with pytest.raises(ScenarioFileError):
+        build_graph_params({}, steps=100, scenario=str(tmp_path / "nope.yaml"), run_dir=tmp_path)
