@@ -350,8 +350,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         publisher="agent_node",
         subscribers=("bridge_node",),
         rate="1 per decision step",
-        meaning="buttons[0] = action (0 keep, 1 left, 2 right; 3 faster, 4 slower where the scenario has speed "
-        "actions, else refused and counted as out_of_range); header.stamp = stamp of the state it answers; "
+        meaning="buttons[0] = action (0 keep, 1 left, 2 right); header.stamp = stamp of the state it answers; "
         "header.frame_id = sender id (the bridge locks onto the first sender)",
         units="action index",
     ),

@@ -155,12 +155,12 @@ from sumo_bridge.observation import (
     encode_point_rows,
     observation_space,
 )
-from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
+from sumo_bridge.scenario import ScenarioConfig
 from sumo_bridge.scene import SCENE_VARS, Scene, SceneTracker, read_lanes
 from sumo_bridge.sim_backend import SumoSimulation, constants
 from sumo_bridge.warm_state import WarmState
 from sumo_bridge.flow_scenario import FlowScenarioMixin
-from sumo_bridge.scenario_file import ScenarioSpec, load_scenario
+from sumo_bridge.scenario_file import ScenarioSpec, load_scenario, scenario_from_kwargs
 
 log = logging.getLogger(__name__)
 

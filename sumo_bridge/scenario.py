@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 from der_ros.configuration import ConfigError, from_dict, param, to_dict, validate
@@ -238,32 +239,17 @@ class ScenarioConfig:
 
 
 def scenario_from_kwargs(
-    network: str, config: ScenarioConfig | dict[str, Any] | None = None, **overrides: Any
+    network: str, config: ScenarioConfig | dict[str, Any] | None = None,
+    preset: Callable[..., ScenarioConfig] | None = None, **overrides: Any,
 ) -> ScenarioConfig:
     """Build a validated config from ``gymnasium.make`` keyword arguments.
 
     Accepts a ready :class:`ScenarioConfig`, a ``scenario``-style mapping, and/or field
-    overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``).
+    overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``). ``preset``: the defaults
+    (``ScenarioConfig.ring`` / ``.urban`` by ``network``; a scenario file's, see
+    :func:`sumo_bridge.scenario_file.scenario_from_kwargs`).
     """
-    if isinstance(config, str):
-        config = {"file": config}
-    if network == "scenario":  # a scenario file (sumo_bridge.scenario_file): its values are the defaults
-        from sumo_bridge.scenario_file import load_scenario_config
-
-        file = (to_dict(config) if isinstance(config, ScenarioConfig) else dict(config or {})).get("file") or overrides.get("file")
-        if not file:
-            raise ConfigError("scenario: file missing, expected the path of a scenario file (or a shipped name: exit)")
-        base = load_scenario_config(file)
-        network = base.network
-
-        def preset(**kw: Any) -> ScenarioConfig:
-            return from_dict(ScenarioConfig, {**to_dict(base), **kw}, source=str(file))
-
-        if isinstance(config, dict):
-            config = {k: v for k, v in config.items() if k not in ("file", "network")}
-        overrides.pop("file", None)
-        overrides.pop("network", None)
-    else:
+    if preset is None:
         preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
     if isinstance(config, ScenarioConfig):
         data = to_dict(config)

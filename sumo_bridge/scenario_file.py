@@ -48,6 +48,7 @@ import yaml
 from der_ros.configuration import ConfigError, from_dict, to_dict, validate
 from sumo_bridge.network_build import NETWORK_NAMES
 from sumo_bridge.scenario import ACTION_SETS, ScenarioConfig
+from sumo_bridge.scenario import scenario_from_kwargs as _config_from_kwargs
 
 __all__ = [
     "ScenarioFileError",
@@ -60,6 +61,7 @@ __all__ = [
     "load_scenario",
     "load_scenario_config",
     "shipped_scenario",
+    "scenario_from_kwargs",
     "SHIPPED_DIR",
 ]
 
@@ -411,3 +413,26 @@ def load_scenario_config(path_or_name: str | Path, **overrides: Any) -> Scenario
     if obs is not None:
         data["observation"] = {**data["observation"], **(to_dict(obs) if not isinstance(obs, dict) else obs)}
     return validate(from_dict(ScenarioConfig, data, source=str(p)), source=str(p))
+
+
+def scenario_from_kwargs(network: str, config: ScenarioConfig | dict[str, Any] | str | None = None,
+                         **overrides: Any) -> ScenarioConfig:  # fmt: skip
+    """:func:`sumo_bridge.scenario.scenario_from_kwargs` for every env id: ``network`` 'scenario'
+    (``der_ros/LaneChangeScenario-v0``) takes its defaults from the scenario file named by ``file`` in
+    ``config`` (or ``config`` itself as a path; a shipped scenario's name works too)."""
+    if isinstance(config, str):
+        config = {"file": config}
+    if network != "scenario":
+        return _config_from_kwargs(network, config, **overrides)
+    given = to_dict(config) if isinstance(config, ScenarioConfig) else dict(config or {})
+    file = given.get("file") or overrides.get("file")
+    if not file:
+        raise ConfigError("scenario: file missing, expected the path of a scenario file (or a shipped name: exit)")
+    base = load_scenario_config(file)
+
+    def preset(**kw: Any) -> ScenarioConfig:
+        return from_dict(ScenarioConfig, {**to_dict(base), **kw}, source=str(file))
+
+    rest = {k: v for k, v in given.items() if k not in ("file", "network")}
+    extra = {k: v for k, v in overrides.items() if k not in ("file", "network")}
+    return _config_from_kwargs(base.network, rest, preset=preset, **extra)

@@ -54,7 +54,7 @@ from der_ros.train.evaluation import (
     run_episodes,
 )
 from sumo_bridge import ENV_NETWORKS
-from sumo_bridge.scenario import scenario_from_kwargs
+from sumo_bridge.scenario_file import scenario_from_kwargs
 from sumo_bridge.scenario_file import load_scenario
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
 
