@@ -10,8 +10,8 @@ CLI flags and ROS parameters share the same checks; a bad value raises
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from der_ros.configuration import ConfigError, from_dict, param, to_dict, validate

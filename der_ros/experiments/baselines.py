@@ -54,9 +54,8 @@ from der_ros.train.evaluation import (
     run_episodes,
 )
 from sumo_bridge import ENV_NETWORKS
-from sumo_bridge.scenario_file import scenario_from_kwargs
-from sumo_bridge.scenario_file import load_scenario
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
+from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
 
 __all__ = [
     "SUMO_BASELINES",

@@ -58,8 +58,6 @@ from der_ros.configuration import (
 )
 from der_ros.contract import COMMAND, STATE, default_record_topics
 from der_ros.nodes.node_configs import NODE_SECTIONS
-from sumo_bridge.network_build import NETWORK_NAMES
-from sumo_bridge.scenario_file import load_scenario_config
 from der_ros.nodes.param_check import (
     argv_origin,
     check_node_parameters,
@@ -67,6 +65,8 @@ from der_ros.nodes.param_check import (
     parameter_error,
     section_error,
 )
+from sumo_bridge.network_build import NETWORK_NAMES
+from sumo_bridge.scenario_file import load_scenario_config
 
 __all__ = [
     "ConfigParameters",
