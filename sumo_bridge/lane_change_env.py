@@ -130,6 +130,10 @@ Viewers: after :meth:`LaneChangeEnv.enable_scene`, :meth:`LaneChangeEnv.scene` /
 the bridge's marker topics): on traci through position and angle subscriptions, on libsumo through
 getters once per decision. Off by default: training does not pay for it.
 
+Code layout: the set-up of the built-in scenarios is in :mod:`sumo_bridge.builtin_setup`, that of
+scenario files in :mod:`sumo_bridge.flow_scenario` (both mixed into :class:`LaneChangeEnv`); this
+module keeps the stepping, the reward and the observation reading.
+
 Only one libsumo simulation can live in a process (:mod:`sumo_bridge.sim_backend`): a second
 live env raises :class:`~sumo_bridge.sim_backend.SimulationInUseError`. Run parallel envs in
 subprocesses.
