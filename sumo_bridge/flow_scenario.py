@@ -75,10 +75,10 @@ class FlowScenarioMixin:
         self._warmup(spec.traffic.ego_gap_seconds)
         self._halted_s = 0.0
         self._target_speed = None
-        for _attempt in range(30):
+        for _attempt in range(self._steps(30.0)):  # one SUMO step at a time until a car is in the window
             if self._take_over_ego():
                 return
-            self._warmup(1.0)
+            self._sim_step()
         raise RuntimeError(f"{spec.path}: no passenger car on {spec.ego.route[0]}_{spec.ego.lane} within "
                            f"ego.depart_pos {list(spec.ego.depart_pos)} in 30 s of traffic (demand too light?)")  # fmt: skip
 
