@@ -153,6 +153,18 @@ class FlowScenarioMixin:
             self._halted_s = 0.0
         return 0.0, False, None
 
+    def _goal_distance(self, road: str, pos: float) -> float:
+        """Metres from the ego to the diverge (the end of the route edge before the goal edge); 0 past it.
+        Observed as the ego row's gap (ObservationConfig.goal_distance_scale)."""
+        spec = self._spec
+        assert spec is not None and spec.goal.edge is not None
+        route = spec.ego.route
+        k = route.index(spec.goal.edge)
+        if road not in route[:k]:
+            return 0.0
+        i = route.index(road)
+        return max(self._edge_length(road) - pos, 0.0) + sum(self._edge_length(e) for e in route[i + 1:k])
+
     def _edge_length(self, edge: str) -> float:
         length = self._edge_lengths.get(edge)
         if length is None:

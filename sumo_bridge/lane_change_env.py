@@ -579,7 +579,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         heading = math.radians(ego[_V_ANGLE])
         fx, fy = math.sin(heading), math.cos(heading)  # SUMO angle: degrees clockwise from north
         # rows in POINT_FIELDS order: x y z speed rel_speed gap lane target_lane present slot lane_count length
-        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
+        to_goal = self._goal_distance(ego_road, ego_pos) if self._goal_edge is not None else 0.0
+        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, to_goal, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
         for slot, hit in enumerate(best):
             if hit is None:
                 rows.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, -1.0, 0.0, slot + 1.0, 0.0, 0.0])

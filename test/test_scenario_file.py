@@ -129,7 +129,11 @@ def test_tiny_user_scenario_passes_check_env_and_has_speed_actions() -> None:
     try:
         assert env.action_space.n == 5 and env.action_meanings[3:] == ("faster", "slower")
         check_env(env, skip_render_check=True)
-        env.reset(seed=1)
+        obs, info = env.reset(seed=1)
+        # the last entry: the distance to the diverge (ego row's gap) over goal_distance_scale
+        to_split = env._goal_distance(*env._ego_road_pos_speed[:2])
+        assert 0.0 < to_split <= 200.0 and info["points"][0, 5] == to_split
+        assert obs.shape == (30,) and obs[-1] == pytest.approx(to_split / 200.0)
         speed = env._ego_road_pos_speed[2]
         env.step(4)  # slower: the target speed steps down from the current speed
         assert env._target_speed == pytest.approx(max(speed - env.config.speed_step, 0.0))
@@ -197,6 +201,7 @@ def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: 
     assert bridge["scenario.network"] == "tiny" and bridge["scenario.file"] == str(TINY / "tiny.yaml")
     assert bridge["scenario.actions"] == ["keep", "left", "right", "faster", "slower"]
     assert params["agent_node"]["ros__parameters"]["n_actions"] == 5
+    assert params["agent_node"]["ros__parameters"]["observation.goal_distance_scale"] == 200.0
     env_cfg = scenario_env_config(bridge)
     assert env_cfg.id == SCENARIO_ENV_ID and env_cfg.kwargs["scenario"]["file"] == str(TINY / "tiny.yaml")
     with pytest.raises(ScenarioFileError):

@@ -356,7 +356,10 @@ def build_graph_params(
     if scenario not in NETWORK_NAMES:  # a scenario file: its fields become the bridge's scenario.* parameters
         for name, value in flatten_names(to_dict(load_scenario_config(scenario))).items():  # the file wins over base
             put("bridge_node", f"scenario.{name}", list(value) if isinstance(value, tuple) else value, "--scenario")
-        put("agent_node", "n_actions", len(load_scenario_config(scenario).actions), "--scenario")
+        file_cfg = load_scenario_config(scenario)
+        put("agent_node", "n_actions", len(file_cfg.actions), "--scenario")
+        for name, value in flatten_names(to_dict(file_cfg.observation)).items():  # the agent encodes the same way
+            put("agent_node", f"observation.{name}", value, "--scenario")
     if free_run:
         put("bridge_node", "mode", "free_run", "--free-run")
     if replay is not None:
