@@ -73,7 +73,7 @@ An episode lasts ``max_episode_steps`` decisions (default 50 x 0.5 s) unless a c
   (urban: end of its route; the default horizon makes this impossible) ends the episode the same way.
 
 ``info["event"]`` is the episode's outcome, set in its last step only (None before):
-``success``, ``collision`` or ``time_limit``. ``info["target_reached"]`` says whether the bonus
+``success``, ``collision`` or ``time_limit`` (scenario files with a goal edge also ``missed``). ``info["target_reached"]`` says whether the bonus
 was paid so far.
 
 Resets and determinism
