@@ -90,7 +90,7 @@ _GOOD = (TINY / "tiny.yaml").read_text()
         (_GOOD.replace("horizon: 40", "horizon: [40"), "line"),
         (_GOOD.replace("horizon: 40", "horizon: -4"), "horizon"),
         (_GOOD.replace("actions: [keep, left, right, faster, slower]", "actions: [keep, brake]"), "actions"),
-        (_GOOD.replace("settings: {success_ends_episode: true}", "settings: {sucess_ends_episode: true}"),
+        (_GOOD.replace("settings: {success_ends_episode:", "settings: {sucess_ends_episode:"),
          "settings.sucess_ends_episode"),
         (_GOOD.replace("network: {nodes: tiny.nod.xml, edges: tiny.edg.xml, connections: tiny.con.xml}\n", ""),
          "network"),
@@ -99,6 +99,7 @@ _GOOD = (TINY / "tiny.yaml").read_text()
          "bad-horizon", "bad-actions", "unknown-setting", "no-network"],
 )
 def test_malformed_scenario_files_give_one_line_naming_file_and_field(tmp_path: Path, text: str, field: str) -> None:
+    assert text != _GOOD  # the mistake was made
     path = _write(tmp_path, text)
     with pytest.raises(ScenarioFileError) as err:
         load_scenario(path)
