@@ -355,6 +355,8 @@ def build_graph_params(
     put("bridge_node", "scenario.network", scenario, "--scenario")
     if scenario not in NETWORK_NAMES:  # a scenario file: its fields become the bridge's scenario.* parameters
         for name, value in flatten_names(to_dict(load_scenario_config(scenario))).items():  # the file wins over base
+            if isinstance(value, (list, tuple)) and not value:
+                continue  # ROS cannot type an empty array: the node's default (empty) stays
             put("bridge_node", f"scenario.{name}", list(value) if isinstance(value, tuple) else value, "--scenario")
         file_cfg = load_scenario_config(scenario)
         put("agent_node", "n_actions", len(file_cfg.actions), "--scenario")
