@@ -25,6 +25,7 @@ needs timing. Prints a table, then one JSON line.
 
     .venv/bin/python bench/sumo_env.py            # ~1-2 minutes
     .venv/bin/python bench/sumo_env.py --quick    # ~15 s
+    .venv/bin/python bench/sumo_env.py --exit     # the exit scenario only (issue 44)
 """
 
 from __future__ import annotations
@@ -186,12 +187,65 @@ def evaluate(network: str, policy: Callable[[np.ndarray], int], episodes: int, s
     }
 
 
+def exit_speed(rounds: int, chunk: int, resets: int) -> dict[str, float]:
+    """The exit scenario (issue 44): env step (one SUMO step per decision, keep) against raw
+    ``simulationStep`` on the same simulation and traffic, interleaved by rounds; and reset times
+    (unseeded: traffic keeps running, the next ego is taken over; seeded: load + the warmed state)."""
+    from sumo_bridge.lane_change_env import make_scenario_env
+
+    env = make_scenario_env(scenario={"file": "exit", "decision_interval": 1, "max_episode_steps": 100_000})
+    try:
+        env.reset(seed=0)
+        env_rates, raw_rates = [], []
+        for _ in range(rounds):
+            done, n, spent = False, 0, 0.0
+            while n < chunk:
+                if done:
+                    env.reset()
+                t0 = time.perf_counter()
+                _o, _r, term, trunc, _i = env.step(0)
+                spent += time.perf_counter() - t0
+                n, done = n + 1, term or trunc
+            env_rates.append(n / spent)
+            step = env.api.simulationStep
+            t0 = time.perf_counter()
+            for _ in range(chunk):  # the same simulation: the env's subscriptions stay active, as in the ring row
+                step()
+            raw_rates.append(chunk / (time.perf_counter() - t0))
+            env.reset()
+        unseeded = []
+        for _ in range(resets):
+            t0 = time.perf_counter()
+            env.reset()
+            unseeded.append(1e3 * (time.perf_counter() - t0))
+        seeded = []
+        for k in range(max(3, resets // 10)):
+            env.reset(seed=k % 3)  # warmed states cached after the first round
+            t0 = time.perf_counter()
+            env.reset(seed=k % 3)
+            seeded.append(1e3 * (time.perf_counter() - t0))
+        ratios = [e / r for e, r in zip(env_rates, raw_rates)]
+        return {"exit_env_steps_per_s": statistics.median(env_rates), "exit_raw_steps_per_s": statistics.median(raw_rates),
+                "exit_env_over_raw": statistics.median(ratios), "exit_vehicles": float(env.api.vehicle.getIDCount()),
+                "exit_reset_ms_p50": statistics.median(unseeded), "exit_seeded_reset_ms_p50": statistics.median(seeded)}  # fmt: skip
+    finally:
+        env.close()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer steps and episodes (a smoke run)")
     parser.add_argument("--no-policies", action="store_true", help="skip the scripted-policy success rates")
+    parser.add_argument("--exit", action="store_true",
+                        help="only the exit scenario: env step vs raw libsumo, and reset times (issue 44)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    if args.exit:
+        e = exit_speed(*((3, 300, 20) if args.quick else (9, 1500, 100)))
+        for k, v in e.items():
+            print(f"{k:<34}{v:>12.3f}")
+        print(json.dumps({k: round(v, 3) for k, v in e.items()}))
+        return 0
     rounds, chunk, traci_chunk, episodes = (3, 1000, 200, 30) if args.quick else (15, 2000, 400, 200)
 
     m = speed(rounds, chunk, traci_chunk)

@@ -17,10 +17,15 @@ change lanes. The ego vehicle starts on ``ego_lane`` among background traffic an
 The ego's own lane-change model is off (``laneChangeMode 0``): a commanded change is executed
 in the next simulation step whether safe or not, so an unsafe change really collides.
 
-Actions (``Discrete(3)``)
--------------------------
+Actions (``Discrete(3)``, or ``Discrete(5)`` with speed actions)
+-----------------------------------------------------------------
 0 keep lane, 1 change left (lane index + 1), 2 change right (lane index - 1). A direction with
 no lane is a no-op, and so is every change once the target lane is reached (see below).
+Scenarios whose ``actions`` add them (:mod:`sumo_bridge.flow_scenario`): 3 faster, 4 slower.
+
+Scenario files (``ScenarioConfig.file``, ``der_ros/LaneChangeScenario-v0``; docs/scenarios.md) set
+up their own road and traffic (:mod:`sumo_bridge.flow_scenario`); a goal edge (an exit) adds the
+event ``missed``.
 
 Observation
 -----------
@@ -68,7 +73,7 @@ An episode lasts ``max_episode_steps`` decisions (default 50 x 0.5 s) unless a c
   (urban: end of its route; the default horizon makes this impossible) ends the episode the same way.
 
 ``info["event"]`` is the episode's outcome, set in its last step only (None before):
-``success``, ``collision`` or ``time_limit``. ``info["target_reached"]`` says whether the bonus
+``success``, ``collision`` or ``time_limit`` (scenario files with a goal edge also ``missed``). ``info["target_reached"]`` says whether the bonus
 was paid so far.
 
 Resets and determinism
@@ -125,6 +130,10 @@ Viewers: after :meth:`LaneChangeEnv.enable_scene`, :meth:`LaneChangeEnv.scene` /
 the bridge's marker topics): on traci through position and angle subscriptions, on libsumo through
 getters once per decision. Off by default: training does not pay for it.
 
+Code layout: the set-up of the built-in scenarios is in :mod:`sumo_bridge.builtin_setup`, that of
+scenario files in :mod:`sumo_bridge.flow_scenario` (both mixed into :class:`LaneChangeEnv`); this
+module keeps the stepping, the reward and the observation reading.
+
 Only one libsumo simulation can live in a process (:mod:`sumo_bridge.sim_backend`): a second
 live env raises :class:`~sumo_bridge.sim_backend.SimulationInUseError`. Run parallel envs in
 subprocesses.
@@ -141,7 +150,9 @@ import gymnasium as gym
 import numpy as np
 
 from der_ros.contract import LaneLine
-from sumo_bridge.network_build import BuiltNetwork, build_network
+from sumo_bridge.builtin_setup import RING_EDGES, URBAN_CORRIDOR, RingSetupMixin, UrbanSetupMixin
+from sumo_bridge.flow_scenario import FlowScenarioMixin
+from sumo_bridge.network_build import BuiltNetwork, build_network, build_scenario_network
 from sumo_bridge.observation import (
     POINT_FIELDS,
     SLOT_NAMES,
@@ -150,18 +161,22 @@ from sumo_bridge.observation import (
     encode_point_rows,
     observation_space,
 )
-from sumo_bridge.scenario import ScenarioConfig, scenario_from_kwargs
+from sumo_bridge.scenario import ScenarioConfig
+from sumo_bridge.scenario_file import ScenarioSpec, load_scenario, scenario_from_kwargs
 from sumo_bridge.scene import SCENE_VARS, Scene, SceneTracker, read_lanes
 from sumo_bridge.sim_backend import SumoSimulation, constants
 from sumo_bridge.warm_state import WarmState
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "EVENTS", "ACTION_MEANINGS"]
+__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "make_scenario_env", "EVENTS", "ACTION_MEANINGS"]
 
 #: Possible values of ``info["event"]`` (the outcome, in an episode's last step; None before).
-EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit")
-ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right")
+#: ``missed``: a file scenario's goal edge was missed (sumo_bridge.flow_scenario).
+EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit", "missed")
+#: Every action by index (der_ros.contract.ACTION_NAMES): the paper's three (the default set) and the speed
+#: actions a scenario may add (ScenarioConfig.actions); ``env.action_meanings`` is the scenario's prefix.
+ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right", "faster", "slower")
 
 _tc = constants()
 _V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD = _tc.VAR_SPEED, _tc.VAR_LANE_INDEX, _tc.VAR_LANEPOSITION, _tc.VAR_ROAD_ID
@@ -174,12 +189,10 @@ _CTX_VARS = [_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD, _V_POS, _V_ANGLE, _V_LENGTH
 assert POINT_FIELDS == ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot",
                         "lane_count", "length")  # fmt: skip
 
-_RING_EDGES = ("bottom", "right", "top", "left")
-_URBAN_CORRIDOR = ("101", "102", "100", "103", "104")
 _INVALID_DISTANCE = 1e10
 
 
-class LaneChangeEnv(gym.Env):
+class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env):
     """Gymnasium env of the section 5.1 lane-change task (see the module docstring)."""
 
     metadata: dict[str, Any] = {"render_modes": []}
@@ -189,12 +202,25 @@ class LaneChangeEnv(gym.Env):
             raise ValueError(f"render_mode = {render_mode!r}: use ScenarioConfig(gui=True) to watch in sumo-gui")
         self.config = config if config is not None else ScenarioConfig.ring()
         cfg = self.config
-        self.action_space = gym.spaces.Discrete(3)
+        self.action_space = gym.spaces.Discrete(len(cfg.actions))
+        self.action_meanings: tuple[str, ...] = tuple(cfg.actions)
         self.observation_space = observation_space(cfg.observation)
         self.step_seconds: float = cfg.step_seconds
         self.ego_id = "ego"  # ring: always "ego"; urban: "ego.<n>", one per episode
         self._ego_serial = 0
-        self.network: BuiltNetwork = build_network(cfg.network)
+        self._spec: ScenarioSpec | None = load_scenario(cfg.file) if cfg.file else None
+        if self._spec is not None:
+            net = self._spec.network
+            self.network: BuiltNetwork = build_scenario_network(cfg.network, net.net, net.nodes, net.edges,
+                                                                net.connections, self._spec.demand)  # fmt: skip
+        else:
+            self.network = build_network(cfg.network)
+        self._v_departed, self._v_colliding = _V_DEPARTED, _V_COLLIDING
+        self._edge_lengths: dict[str, float] = {}
+        self._halted_s = 0.0  # file scenarios: seconds the ego has been halted in the miss zone
+        self._target_speed: float | None = None  # speed actions: the ego's target speed (None: SUMO's own)
+        self._ego_road_pos_speed: tuple[str, float, float] = ("", 0.0, 0.0)
+        self._goal_edge = self._spec.goal.edge if self._spec is not None else None
         self._tc = constants()
         self._sim: SumoSimulation | None = SumoSimulation(
             self._sumo_args(cfg.seed), backend=cfg.backend, gui=cfg.gui, owner=f"LaneChangeEnv({cfg.network})"
@@ -231,17 +257,18 @@ class LaneChangeEnv(gym.Env):
         cfg = self.config
         return [
             "-n", str(self.network.net_file),
-            "-r", str(self.network.route_file),
+            "-r", ",".join(str(p) for p in self._spec.demand) if self._spec is not None else str(self.network.route_file),
             "--step-length", repr(cfg.step_length),
             "--seed", str(int(seed)),
             "--collision.action", "warn",
             "--collision.check-junctions", "true",
             "--collision.mingap-factor", "0",
-            "--time-to-teleport", "-1",
+            "--time-to-teleport", str(self._spec.traffic.teleport_seconds) if self._spec is not None else "-1",
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
             *(["--start", "true", "--quit-on-end", "true"] if cfg.gui else []),
+            *(["--save-state.rng", "true"] if self._spec is not None else []),
             *cfg.sumo_args,
         ]  # fmt: skip
 
@@ -271,7 +298,10 @@ class LaneChangeEnv(gym.Env):
         coordinate, so gaps to vehicles on the next or previous edge need no extra query.
         """
         api = self.api
-        edges = _RING_EDGES if self.config.network == "ring" else _URBAN_CORRIDOR
+        if self._spec is not None:
+            edges = self._spec.ego.route
+        else:
+            edges = RING_EDGES if self.config.network == "ring" else URBAN_CORRIDOR
         seq = list(edges) + ([edges[0]] if self._closed_corridor else [])
         offsets: dict[str, float] = {}
         s = 0.0
@@ -309,7 +339,9 @@ class LaneChangeEnv(gym.Env):
             self._rng = np.random.default_rng(self.config.seed if seed is None else seed)
             self._need_load = True
         self._reset_episode_state()
-        if self.config.network == "ring":
+        if self._spec is not None:
+            self._reset_file()
+        elif self.config.network == "ring":
             self._reset_ring()
         else:
             self._reset_urban()
@@ -330,163 +362,6 @@ class LaneChangeEnv(gym.Env):
             self._build_corridor()
         self._episodes_since_load = 0
         self._need_load = False
-
-    def _ring_where(self, s: float) -> tuple[str, float]:
-        """Edge and position of arc length ``s`` on the ring, on a normal edge (the placement rule)."""
-        lap = self._loop_length
-        s %= lap
-        for edge, off, length in self._ring_edges:
-            if off <= s < off + length:
-                return edge, min(s - off, length - 0.1)
-        # inside a junction's internal lane: start of the next edge instead (shift < 0.3 m)
-        nxt = min(((off - s) % lap, edge) for edge, off, _ in self._ring_edges)[1]
-        return nxt, 0.1
-
-    def _reset_ring(self) -> None:
-        cfg = self.config
-        if self._need_load or self._warm is None or self._episodes_since_load >= cfg.ring_rebuild_every:
-            self._build_ring()
-        elif not self._replay_ring():
-            log.warning("ring: %d vehicles in the simulation, expected %d; rebuilding the traffic",
-                        self.api.vehicle.getIDCount(), len(self._warm))  # fmt: skip
-            self._build_ring()
-
-    def _build_ring(self) -> None:
-        """Reload, place the traffic at standstill from the seeded RNG, warm up; record the warm state."""
-        cfg, api, rng = self.config, self.api, self._rng
-        assert rng is not None
-        self._load()
-        if not self._ring_edges:
-            self._ring_edges = [(e, self._offsets[e], api.lane.getLength(f"{e}_0")) for e in _RING_EDGES]
-        lap = self._loop_length
-        where = self._ring_where
-        counts = [int(rng.integers(cfg.ring_outer_vehicles[0], cfg.ring_outer_vehicles[1] + 1)),
-                  int(rng.integers(cfg.ring_inner_vehicles[0], cfg.ring_inner_vehicles[1] + 1))]  # fmt: skip
-        counts[cfg.ego_lane] += 1  # the ego is vehicle 0 of its lane
-        for lane, n in enumerate(counts):
-            if n == 0:
-                continue
-            free = lap - n * cfg.min_spacing
-            u = np.sort(rng.uniform(0.0, free, n))
-            pos = u + np.arange(n) * cfg.min_spacing + rng.uniform(0.0, lap)
-            slow = rng.random(n) < cfg.slow_fraction
-            for i in range(n):
-                edge, p = where(float(pos[i]))
-                is_ego = lane == cfg.ego_lane and i == 0
-                vid = self.ego_id if is_ego else f"bg{lane}_{i}"
-                vtype = "ego" if is_ego else ("slow" if slow[i] else "car")
-                api.vehicle.add(vid, f"loop_{edge}", vtype, depart="now", departLane=str(lane),
-                                departPos=f"{p:.3f}", departSpeed="0")  # fmt: skip
-        api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)
-        self._warmup(cfg.warmup_seconds, min_steps=1)
-        # the state a re-placement puts back; like here, one simulation step follows it
-        self._warm = None
-        if cfg.ring_rebuild_every > 1:
-            self._warm = WarmState.record(api, self._offsets, fixed_lane=cfg.ego_lane)
-        self._subscribe_ego()
-        self._episodes_since_load = 1
-
-    def _replay_ring(self) -> bool:
-        """Put the last build's warm traffic back, the other lanes rotated (:mod:`sumo_bridge.warm_state`),
-        then one simulation step, as after a build's warm-up.
-
-        False (nothing changed) if a vehicle of the recorded state has left the simulation.
-        """
-        api, rng, warm = self.api, self._rng, self._warm
-        assert rng is not None and warm is not None
-        if api.vehicle.getIDCount() != len(warm):
-            return False
-        warm.apply(api, float(rng.uniform(0.0, self._loop_length)), self._ring_where)
-        # a lane change the agent commanded just before the last episode ended is still pending
-        # (it holds for step_seconds); cancel it so the ego stays on its start lane
-        api.vehicle.changeLane(self.ego_id, self.config.ego_lane, 0.0)
-        # The step also renews every subscription result: right after moveTo, SUMO 1.28 answers
-        # a (re)subscription partly from the previous step's positions.
-        self._sim_step()
-        self._episodes_since_load += 1
-        return True
-
-    def _reset_urban(self) -> None:
-        cfg, api, rng = self.config, self.api, self._rng
-        assert rng is not None
-        if self._need_load or (cfg.urban_reload_every and self._episodes_since_load >= cfg.urban_reload_every):
-            self._load()
-            self._ego_serial = 0
-            self._warmup(cfg.urban_warmup_seconds)
-        elif self.ego_id in api.vehicle.getIDList():
-            # drop its subscriptions first: stepping with a subscription on a removed vehicle raises
-            api.vehicle.unsubscribeContext(self.ego_id, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range)
-            api.vehicle.unsubscribe(self.ego_id)
-            api.vehicle.remove(self.ego_id)
-            self._ego_present = False
-        self._episodes_since_load += 1
-        self._warmup(cfg.urban_ego_gap_seconds)
-        if self._insert_urban_ego():
-            return
-        # No attempt found room. Seen about once per ~900 episodes: not a jam but a dense platoon
-        # of the main northbound flow (vehicles at ~13 m/s, ~20 m apart over the whole insertion
-        # window), where SUMO finds no safe insertion gap. Start over from a fresh, warmed-up
-        # simulation rather than failing a long training run.
-        log.warning("ego could not be inserted on the bridge after 20 attempts (dense traffic on the start lane); "
-                    "reloading the simulation")  # fmt: skip
-        self._load()
-        self._ego_serial = 0
-        self._warmup(cfg.urban_warmup_seconds)
-        self._episodes_since_load = 1
-        if not self._insert_urban_ego():
-            raise RuntimeError(
-                "could not insert the ego vehicle on the bridge after 20 attempts, even after a reload "
-                "(traffic too dense? check urban_depart_pos and the background demand)"
-            )
-
-    def _insert_urban_ego(self) -> bool:
-        """Try up to 20 seeded positions on the start lane; True once the ego is in the network."""
-        cfg, api = self.config, self.api
-        for _attempt in range(20):
-            # a fresh id per attempt: SUMO 1.28 never inserts a vehicle re-added under the id of one
-            # removed before its insertion; unique ids also keep logs unambiguous
-            self._ego_serial += 1
-            self.ego_id = f"ego.{self._ego_serial}"
-            pos = self._urban_insert_pos()
-            api.vehicle.add(self.ego_id, "ego_route", "ego", depart="now", departLane=str(cfg.ego_lane),
-                            departPos=f"{pos:.3f}", departSpeed="max")  # fmt: skip
-            api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)
-            for _ in range(3):
-                self._sim_step()
-                if self.ego_id in api.vehicle.getIDList():
-                    self._subscribe_ego()
-                    return True
-            api.vehicle.remove(self.ego_id)  # could not be inserted there (blocked): try elsewhere
-            self._sim_step()
-        return False
-
-    def _urban_insert_pos(self) -> float:
-        """A seeded position for the ego on the bridge: the middle of a random gap that fits it.
-
-        Dense lanes rarely leave room at a uniformly drawn position, so choose among the gaps
-        between the vehicles already on the start lane inside ``urban_depart_pos``.
-        """
-        cfg, api, rng = self.config, self.api, self._rng
-        assert rng is not None
-        lo, hi = cfg.urban_depart_pos
-        lane_id = f"{_URBAN_CORRIDOR[2]}_{cfg.ego_lane}"
-        ends = sorted(
-            (api.vehicle.getLanePosition(v), api.vehicle.getLength(v)) for v in api.lane.getLastStepVehicleIDs(lane_id)
-        )
-        fronts = [lo - 100.0] + [p for p, _ in ends] + [hi + 100.0]
-        backs = [lo - 100.0] + [p - length for p, length in ends] + [hi + 100.0]
-        need = 5.0 + 2 * 2.5 + 12.0  # ego length + min gaps + room for the follower to brake
-        gaps = [
-            (backs[i + 1] - fronts[i], 0.5 * (fronts[i] + backs[i + 1]) + 2.5)
-            for i in range(len(fronts) - 1)
-            if lo <= 0.5 * (fronts[i] + backs[i + 1]) <= hi
-        ]
-        fitting = [mid for size, mid in gaps if size >= need]
-        if fitting:
-            return float(fitting[int(rng.integers(len(fitting)))])
-        if gaps:  # dense lane: the largest gap is the best chance
-            return float(max(gaps)[1])
-        return float(rng.uniform(lo, hi))
 
     def _warmup(self, seconds: float, min_steps: int = 0) -> None:
         for _ in range(max(self._steps(seconds), min_steps)):
@@ -510,9 +385,11 @@ class LaneChangeEnv(gym.Env):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() called after the episode ended; call reset()")
-        if type(action) is not int or not 0 <= action <= 2:  # fast path for plain ints
-            if action not in (0, 1, 2) or isinstance(action, bool):
-                raise ValueError(f"action = {action!r}, expected 0 (keep), 1 (left) or 2 (right)")
+        n = len(self.action_meanings)
+        if type(action) is not int or not 0 <= action < n:  # fast path for plain ints
+            if action not in range(n) or isinstance(action, bool):
+                meanings = ", ".join(f"{i} ({m})" for i, m in enumerate(self.action_meanings))
+                raise ValueError(f"action = {action!r}, expected one of {meanings}")
         reward, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(int(action))
         if self._commit and self._target_reached and not (terminated or truncated):
             # the authors' commit structure: the rest of the horizon runs inside this transition (no-op
@@ -540,7 +417,9 @@ class LaneChangeEnv(gym.Env):
         Returns (reward, terminated, truncated, event, caused, mean speed, ego gone).
         """
         cfg, api = self.config, self.api
-        if a != 0 and not (self._target_reached and self._hold_target):
+        if a >= 3:
+            self._speed_action(a)
+        elif a != 0 and not (self._target_reached and self._hold_target):
             new_lane = self._ego_lane + 1 if a == 1 else self._ego_lane - 1
             if 0 <= new_lane < self._ego_lane_count:
                 api.vehicle.changeLane(self.ego_id, new_lane, self.step_seconds)
@@ -574,6 +453,10 @@ class LaneChangeEnv(gym.Env):
             )
             if caused:
                 reward += cfg.reward_collision
+        elif self._goal_edge is not None:
+            if not ego_gone and not self._target_reached:
+                r, terminated, event = self._edge_goal()
+                reward += r
         elif self._target_reached:
             pass
         elif not ego_gone and self._ego_lane == cfg.target:
@@ -696,7 +579,8 @@ class LaneChangeEnv(gym.Env):
         heading = math.radians(ego[_V_ANGLE])
         fx, fy = math.sin(heading), math.cos(heading)  # SUMO angle: degrees clockwise from north
         # rows in POINT_FIELDS order: x y z speed rel_speed gap lane target_lane present slot lane_count length
-        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, 0.0, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
+        to_goal = self._goal_distance(ego_road, ego_pos) if self._goal_edge is not None else 0.0
+        rows = [[0.0, 0.0, 0.0, ego_speed, 0.0, to_goal, ego_lane, cfg.target, 1.0, 0.0, n_lanes, ego_len]]
         for slot, hit in enumerate(best):
             if hit is None:
                 rows.append([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, -1.0, 0.0, slot + 1.0, 0.0, 0.0])
@@ -710,6 +594,7 @@ class LaneChangeEnv(gym.Env):
         self._slots = best
         self._ego_lane, self._ego_lane_count = int(ego_lane), n_lanes
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
+        self._ego_road_pos_speed = (ego_road, float(ego_pos), float(ego_speed))
         self._obs = encode_point_rows(rows, cfg.observation)
         self._points = np.array(rows, dtype=np.float64)
 
@@ -794,4 +679,13 @@ def make_urban_env(config: ScenarioConfig | dict[str, Any] | None = None, scenar
                    render_mode: str | None = None, **overrides: Any) -> LaneChangeEnv:  # fmt: skip
     """Entry point of ``der_ros/LaneChangeUrban-v0`` (same keyword arguments as the ring)."""
     return LaneChangeEnv(scenario_from_kwargs("urban", config if config is not None else scenario, **overrides),
+                         render_mode=render_mode)  # fmt: skip
+
+
+def make_scenario_env(config: ScenarioConfig | dict[str, Any] | str | None = None,
+                      scenario: dict[str, Any] | str | None = None, render_mode: str | None = None,
+                      **overrides: Any) -> LaneChangeEnv:  # fmt: skip
+    """Entry point of ``der_ros/LaneChangeScenario-v0``: ``gym.make(id, scenario="path.yaml")`` or
+    ``scenario={"file": "path.yaml", <ScenarioConfig field overrides>}`` (docs/scenarios.md)."""
+    return LaneChangeEnv(scenario_from_kwargs("scenario", config if config is not None else scenario, **overrides),
                          render_mode=render_mode)  # fmt: skip

@@ -52,6 +52,7 @@ __all__ = [
     "source_dir",
     "cache_root",
     "build_network",
+    "build_scenario_network",
 ]
 
 NETWORK_NAMES: tuple[str, ...] = ("ring", "urban")
@@ -207,6 +208,35 @@ def build_network(name: str, force: bool = False, cache_dir: Path | None = None)
             tmp = stamp_file.with_suffix(".tmp")
             tmp.write_text(json.dumps({"stamp": stamp, "netconvert": netconvert_version(), "build": BUILD_VERSION}))
             tmp.replace(stamp_file)
+    return BuiltNetwork(name=name, directory=directory, net_file=net_file, route_file=route_file, stamp=stamp)
+
+
+def build_scenario_network(name: str, net: Path | None, nodes: Path | None, edges: Path | None,
+                           connections: Path | None, demand: tuple[Path, ...]) -> BuiltNetwork:
+    """The network of a scenario file (:mod:`sumo_bridge.scenario_file`): a ready ``.net.xml`` is used in
+    place; plain sources are built with netconvert into ``<cache>/<name>-<hash of the sources>/`` (built
+    once, like the shipped networks). The directory also holds the scenario's warmed traffic states."""
+    digest = hashlib.sha256(f"build={BUILD_VERSION};netconvert={netconvert_version()};".encode())
+    for path in (net, nodes, edges, connections, *demand):
+        if path is not None:
+            digest.update(path.name.encode())
+            digest.update(path.read_bytes())
+    stamp = digest.hexdigest()
+    directory = cache_root() / f"{name}-{stamp[:12]}"
+    directory.mkdir(parents=True, exist_ok=True)
+    route_file = demand[0] if demand else directory / "empty.rou.xml"
+    if net is not None:
+        return BuiltNetwork(name=name, directory=directory, net_file=net, route_file=route_file, stamp=stamp)
+    assert nodes is not None and edges is not None
+    net_file = directory / f"{name}.net.xml"
+    with open(directory / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not net_file.is_file():
+            log.info("building SUMO network of scenario %r in %s", name, directory)
+            args = ["--node-files", str(nodes), "--edge-files", str(edges)]
+            if connections is not None:
+                args += ["--connection-files", str(connections)]
+            _run_netconvert(args, net_file)
     return BuiltNetwork(name=name, directory=directory, net_file=net_file, route_file=route_file, stamp=stamp)
 
 

@@ -62,6 +62,9 @@ with the deceleration block:
   ``closing speed^2 / (2 * gap) / b`` clipped to [0, 1], where the closing speed is
   ``-rel_speed`` for a leader (the ego is faster) and ``rel_speed`` for a follower; 0.0 when the
   gap opens or holds (or the slot is empty), 1.0 when the gap is <= 0 (an overlap).
+* with ``goal_distance_scale = d > 0``, one last entry: the ego row's ``gap`` / d clipped to [0, 1].
+  Scenario files with a goal edge (an exit) put the distance from the ego to the diverge there (the
+  ego row's gap is 0 otherwise): without it the urgency of the exit is not observable.
 
 The present flag keeps "empty" distinguishable from "a vehicle exactly at the range". The second,
 short-range gap channel gives the network resolution where a lane change is decided: whether the
@@ -190,9 +193,18 @@ class ObservationConfig:
         low=0.0,
         high=100.0,
     )
+    goal_distance_scale: float = param(
+        0.0,
+        "metres that map to 1.0 in the goal-distance entry (scenario files with a goal edge: the distance "
+        "from the ego to the diverge, carried in the ego row's gap field; the exit scenario uses 300); "
+        "0 leaves the entry out of the observation",
+        low=0.0,
+        high=100_000.0,
+    )
 
     def check(self) -> None:
-        for name in ("neighbour_range", "near_gap_range", "near_gap_horizon", "required_decel_scale"):
+        for name in ("neighbour_range", "near_gap_range", "near_gap_horizon", "required_decel_scale",
+                     "goal_distance_scale"):  # fmt: skip
             if not np.isfinite(getattr(self, name)):
                 raise ConfigError(f"{name} = {getattr(self, name)!r}, expected a finite number")
 
@@ -210,7 +222,11 @@ def empty_points() -> np.ndarray:
 def observation_size(cfg: ObservationConfig | None = None) -> int:
     """Length of the observation vector (``cfg`` None: the defaults, without the deceleration block)."""
     n = len(EGO_FEATURES) + len(SLOT_FEATURES) * len(SLOT_NAMES)
-    return n + len(SLOT_NAMES) if cfg is not None and cfg.required_decel_scale > 0.0 else n
+    if cfg is not None and cfg.required_decel_scale > 0.0:
+        n += len(SLOT_NAMES)
+    if cfg is not None and cfg.goal_distance_scale > 0.0:
+        n += 1
+    return n
 
 
 def observation_space(cfg: ObservationConfig) -> gym.spaces.Box:
@@ -286,4 +302,8 @@ def encode_point_rows(rows: list[list[float]], cfg: ObservationConfig) -> np.nda
                     out.append(0.0)
             else:
                 out.append(0.0)
+    if cfg.goal_distance_scale > 0.0:  # the ego row's gap: metres to the diverge (scenario files with a goal edge)
+        v = ego[_GAP] / cfg.goal_distance_scale
+        m = 0.0 if 0.0 > v else v
+        out.append(1.0 if 1.0 < m else m)
     return np.array(out, dtype=np.float32)

@@ -10,6 +10,7 @@ CLI flags and ROS parameters share the same checks; a bad value raises
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,14 +18,39 @@ from der_ros.configuration import ConfigError, from_dict, param, to_dict, valida
 from sumo_bridge.network_build import NETWORK_NAMES
 from sumo_bridge.observation import ObservationConfig
 
-__all__ = ["ScenarioConfig", "scenario_from_kwargs"]
+__all__ = ["ScenarioConfig", "scenario_from_kwargs", "ACTION_SETS"]
+
+#: The action sets a scenario may use; index = action value (der_ros.contract carries the same values).
+ACTION_SETS: tuple[tuple[str, ...], ...] = (("keep", "left", "right"), ("keep", "left", "right", "faster", "slower"))
 
 
 @dataclass
 class ScenarioConfig:
     """A SUMO lane-change scenario: network, traffic, timing, reward and observation."""
 
-    network: str = param("ring", "which network: 'ring' (two concentric lanes) or 'urban' (bridge)", choices=NETWORK_NAMES)
+    network: str = param(
+        "ring",
+        "the scenario's name: 'ring' (two concentric lanes) and 'urban' (bridge) are built in; any other name "
+        "needs ``file`` (a scenario file, see docs/scenarios.md)",
+    )
+    file: str = param(
+        "",
+        "path of a scenario file (sumo_bridge.scenario_file) whose network, demand, ego and goal the env "
+        "runs; '' = the built-in ring or urban set-up named by ``network``",
+    )
+    actions: tuple[str, ...] = param(
+        ACTION_SETS[0],
+        "the action set: ['keep', 'left', 'right'] (the paper's, the default) or ['keep', 'left', 'right', "
+        "'faster', 'slower'] (speed actions: the ego's target speed steps by speed_step; SUMO's car-following "
+        "keeps it safe)",
+    )
+    speed_step: float = param(2.0, "m/s the ego's target speed changes by with 'faster' / 'slower'", low=0.0, low_inclusive=False)
+    reward_missed: float = param(
+        0.0,
+        "file scenarios with a goal edge: reward when the ego misses it (event 'missed', terminated). 0 (default): "
+        "a missed exit forfeits reward_success and ends the episode, as a failed change pays nothing in the paper's "
+        "task; -100 is kept for harming others (see docs/scenarios.md)",
+    )
     backend: str = param(
         "libsumo", "'libsumo' (in process, fast, one per process) or 'traci' (sumo subprocess)", choices=("libsumo", "traci")
     )
@@ -155,6 +181,19 @@ class ScenarioConfig:
         return self.step_length * self.decision_interval
 
     def check(self) -> None:
+        if tuple(self.actions) not in ACTION_SETS:
+            raise ConfigError(f"actions = {list(self.actions)!r}, expected one of {[list(a) for a in ACTION_SETS]}")
+        if not self.file:
+            if self.network not in NETWORK_NAMES:
+                raise ConfigError(
+                    f"network = {self.network!r}, expected one of {', '.join(NETWORK_NAMES)} (built in) or a scenario "
+                    "file in 'file'"
+                )
+            self._check_builtin()
+        elif self.ego_lane == self.target:
+            raise ConfigError(f"target_lane = {self.target_lane!r}, expected a lane other than ego_lane ({self.ego_lane})")
+
+    def _check_builtin(self) -> None:
         for name in ("ring_outer_vehicles", "ring_inner_vehicles", "urban_depart_pos"):
             value = getattr(self, name)
             if len(value) != 2 or value[0] > value[1]:
@@ -200,14 +239,18 @@ class ScenarioConfig:
 
 
 def scenario_from_kwargs(
-    network: str, config: ScenarioConfig | dict[str, Any] | None = None, **overrides: Any
+    network: str, config: ScenarioConfig | dict[str, Any] | None = None,
+    preset: Callable[..., ScenarioConfig] | None = None, **overrides: Any,
 ) -> ScenarioConfig:
     """Build a validated config from ``gymnasium.make`` keyword arguments.
 
     Accepts a ready :class:`ScenarioConfig`, a ``scenario``-style mapping, and/or field
-    overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``).
+    overrides (``gym.make("der_ros/LaneChangeRing-v0", decision_interval=1)``). ``preset``: the defaults
+    (``ScenarioConfig.ring`` / ``.urban`` by ``network``; a scenario file's, see
+    :func:`sumo_bridge.scenario_file.scenario_from_kwargs`).
     """
-    preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
+    if preset is None:
+        preset = ScenarioConfig.ring if network == "ring" else ScenarioConfig.urban
     if isinstance(config, ScenarioConfig):
         data = to_dict(config)
     elif config is None:

@@ -25,8 +25,11 @@ __all__ = [
 ]
 
 
-#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``)
-ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right")
+#: names of the actions ``lane_change_cmd`` carries, by index (the env's ``ACTION_MEANINGS``): 0 keep lane,
+#: 1 change left, 2 change right (the paper's set, every scenario's default), 3 faster, 4 slower (the ego's
+#: target speed one ``speed_step`` up / down; only in scenarios whose ``actions`` list them). A scenario's
+#: set is a prefix of these; the bridge refuses a larger index as OUT_OF_RANGE (counted, sumo_bridge.lockstep).
+ACTION_NAMES: tuple[str, ...] = ("keep", "left", "right", "faster", "slower")
 
 
 def parse_command(msg: Any) -> tuple[int, list[int], list[float], str]:

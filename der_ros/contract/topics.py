@@ -37,7 +37,7 @@ __all__ = [
     "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS", "TF", "TF_MSGTYPE", "TF_QOS",
     # status names and episode events
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
-    "EPISODE_TIME_LIMIT", "EPISODE_ENDS", "EPISODE_EVENTS",
+    "EPISODE_TIME_LIMIT", "EPISODE_MISSED", "EPISODE_ENDS", "EPISODE_EVENTS",
     # QoS and the topic table
     "QosSpec", "TopicSpec", "TOPICS", "RELIABLE_VOLATILE", "SENSOR_DATA", "topic_spec", "topic_by_name",
     "default_record_topics", "topics_markdown", "parse_qos_profiles", "merged_qos", "qos_text",
@@ -76,7 +76,9 @@ BRIDGE_STATUS = "bridge"
 EPISODE_START = "start"
 #: status messages of an episode's end event (the env's ``info["event"]`` values)
 EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT = "success", "collision", "time_limit"
-EPISODE_ENDS = (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT)
+#: the exit of a scenario with a goal edge was missed (file scenarios, e.g. ``exit``: docs/scenarios.md)
+EPISODE_MISSED = "missed"
+EPISODE_ENDS = (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT, EPISODE_MISSED)
 EPISODE_EVENTS = (EPISODE_START, *EPISODE_ENDS)
 
 
@@ -335,7 +337,7 @@ TOPICS: tuple[TopicSpec, ...] = (
         publisher="agent_node",
         subscribers=("bridge_node",),
         rate="1 per decision step",
-        meaning="buttons[0] = action (0 keep, 1 left, 2 right); header.stamp = stamp of the state it answers; "
+        meaning="buttons[0] = action (0 keep, 1 left, 2 right; 3 faster, 4 slower in scenarios with speed actions); header.stamp = stamp of the state it answers; "
         "header.frame_id = sender id (the bridge locks onto the first sender)",
         units="action index",
     ),

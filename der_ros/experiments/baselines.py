@@ -55,6 +55,7 @@ from der_ros.train.evaluation import (
 )
 from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
+from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
 
 __all__ = [
     "SUMO_BASELINES",
@@ -91,8 +92,20 @@ class GapAcceptanceParams:
 
 
 def _network(env_cfg: EnvConfig) -> str | None:
-    """'ring' / 'urban' for the SUMO ids, None otherwise."""
-    return ENV_NETWORKS.get(env_cfg.id)
+    """'ring' / 'urban' / a scenario file's name for the SUMO ids, None otherwise."""
+    network = ENV_NETWORKS.get(env_cfg.id)
+    if network == "scenario":
+        return scenario_from_kwargs("scenario", (env_cfg.kwargs or {}).get("scenario")).network
+    return network
+
+
+def _goal_by_route(env_cfg: EnvConfig) -> bool:
+    """True for a scenario whose goal is an edge of the ego's route (an exit): SUMO's own model gets
+    there by its strategic lane changes, so the ``sumo`` baseline commands nothing (keep)."""
+    if ENV_NETWORKS.get(env_cfg.id) != "scenario":
+        return False
+    cfg = scenario_from_kwargs("scenario", (env_cfg.kwargs or {}).get("scenario"))
+    return bool(cfg.file) and load_scenario(cfg.file).goal.edge is not None
 
 
 def baseline_names(env_cfg: EnvConfig) -> tuple[str, ...]:
@@ -189,7 +202,8 @@ def evaluate_baseline(
     envs = [make_env_from_config(baseline_env_config(env_cfg, name), seed_base + i)
             for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
     try:
-        eps = run_episodes(baseline_policy(name, gap), envs, seeds, episodes, episodes_per_seed)
+        policy = baseline_policy("keep" if name == "sumo" and _goal_by_route(env_cfg) else name, gap)
+        eps = run_episodes(policy, envs, seeds, episodes, episodes_per_seed)
     finally:
         for env in envs:
             env.close()
@@ -295,11 +309,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="tuned thresholds (config/baselines.yaml)")
     parser.add_argument("--out", default="runs/baselines", help="folder of the cached evaluations")
     parser.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
+    parser.add_argument("--only", action="append", default=None, metavar="NAME",
+                        help="run only this baseline (repeatable; default: all of the environment's)")
+    parser.add_argument("--tuning-seeds", action="store_true",
+                        help="evaluate on the tuning seeds instead of the held-out evaluation seeds")
 
 
 def run(args: argparse.Namespace) -> int:
-    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Mean return |",
-             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Missed | Mean return |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for path in args.config:
         cfg = load_experiment_config(path)
         env_cfg, per_seed = cfg.env, cfg.train.eval_episodes_per_seed
@@ -320,14 +338,20 @@ def run(args: argparse.Namespace) -> int:
             print(md.read_text())
             continue
         gap = load_gap_params(net, args.params) if net else None
-        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, EVAL_SEED_BASE,
-                            gap if name == "gap_acceptance" else None, str(Path(args.out) / (net or env_cfg.id) / name))
-                for name in baseline_names(env_cfg)]  # fmt: skip
+        names = baseline_names(env_cfg)
+        unknown = sorted(set(args.only or ()) - set(names))
+        if unknown:
+            raise ConfigError(f"--only {unknown[0]!r}: not a baseline of {env_cfg.id}, expected one of {', '.join(names)}")
+        base = TUNING_EVAL_SEED_BASE if args.tuning_seeds else EVAL_SEED_BASE
+        sub = "tuning-seeds" if args.tuning_seeds else ""
+        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, base, gap if name == "gap_acceptance" else None,
+                            str(Path(args.out) / sub / (net or env_cfg.id) / name))
+                for name in names if not args.only or name in args.only]  # fmt: skip
         results = run_baselines(jobs, args.jobs)
         for job in jobs:
             r = results[job.out_dir]
             lines.append(f"| {env_cfg.id} | {job.name} | {r.n} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
-                         f"| {r.time_limit_rate:.3f} | {r.mean_return:.2f} |")  # fmt: skip
+                         f"| {r.time_limit_rate:.3f} | {r.rate('missed'):.3f} | {r.mean_return:.2f} |")  # fmt: skip
     if not args.tune:
         print("\n".join(lines))
     return 0

@@ -39,7 +39,7 @@ from der_ros.configuration import ConfigError, flatten_names, to_dict
 from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
 from sumo_bridge import ENV_NETWORKS
-from sumo_bridge.scenario import scenario_from_kwargs
+from sumo_bridge.scenario_file import scenario_from_kwargs
 
 __all__ = [
     "Method",

@@ -102,8 +102,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (parser.description or "") + " (--config is the ring network's training YAML)"
     parser.add_argument("--urban-config", dest="urban_config", default="config/urban.yaml",
                         help="training YAML of the urban network (default config/urban.yaml)")  # fmt: skip
-    parser.add_argument("--networks", nargs="+", choices=tuple(NETWORKS), default=list(NETWORKS),
-                        help="which networks to run (default: both)")  # fmt: skip
+    parser.add_argument("--networks", nargs="+", default=list(NETWORKS),
+                        help="which networks to run (default: ring urban; also exit, or a name given by "
+                        "--scenario-config)")  # fmt: skip
+    parser.add_argument("--exit-config", dest="exit_config", default="config/exit.yaml",
+                        help="training YAML of the exit scenario (default config/exit.yaml)")  # fmt: skip
+    parser.add_argument("--scenario-config", dest="scenario_configs", action="append", default=[], metavar="NAME=YAML",
+                        help="a training YAML whose env is a scenario file, run as network NAME (repeatable)")  # fmt: skip
     parser.add_argument("--urban-seeds", dest="urban_seeds", type=int, default=None,
                         help="urban runs use only the first N of the seeds (an urban run costs ~3 ring runs; "
                         "default: all of them)")  # fmt: skip
@@ -184,7 +189,7 @@ def write_table3(
     for net, by_method in scores.items():
         payload[net] = {}
         lines += [
-            f"## {NETWORKS[net]}",
+            f"## {NETWORKS.get(net, net)}",
             "",
             "| Method | Success | Caused collision | Time limit | Return | Total reward (training, paper's metric) | Total reward (paper) |",
             "|---|---|---|---|---|---|---|",
@@ -362,7 +367,15 @@ def run(args: argparse.Namespace) -> int:
     methods = methods_by_name(args.methods)
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
-    configs = {"ring": args.config, "urban": args.urban_config}
+    configs = {"ring": args.config, "urban": args.urban_config, "exit": args.exit_config}
+    for item in args.scenario_configs:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise SystemExit(f"der table3: --scenario-config {item!r}, expected NAME=YAML")
+        configs[name] = path
+    unknown = [net for net in args.networks if net not in configs]
+    if unknown:
+        raise SystemExit(f"der table3: --networks {unknown[0]!r}, expected one of {', '.join(configs)}")
     specs: list[RunSpec] = []
     if args.urban_seeds is not None and not 1 <= args.urban_seeds <= len(seeds):
         raise SystemExit(f"der table3: --urban-seeds = {args.urban_seeds}, expected 1..{len(seeds)} (--seeds)")
@@ -396,6 +409,10 @@ def run(args: argparse.Namespace) -> int:
     steps = {net: max(int(r.summary["steps"]) for runs in by_m.values() for r in runs) for net, by_m in results.items()}
     out = Path(args.results)
     extra = ["--urban-config", str(args.urban_config), "--networks", *args.networks]
+    if "exit" in args.networks:
+        extra += ["--exit-config", str(args.exit_config)]
+    for item in args.scenario_configs:
+        extra += ["--scenario-config", item]
     if args.urban_seeds is not None:
         extra += ["--urban-seeds", str(args.urban_seeds)]
     md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
@@ -406,7 +423,7 @@ def run(args: argparse.Namespace) -> int:
         marks = {b_labels.get(net, {}).get(b, BASELINE_LABELS[b]): {"success": r.success_rate, "collision": r.collision_rate}
                  for b, r in baselines.get(net, {}).items() if b in ("gap_acceptance", "sumo")}  # fmt: skip
         plot_eval_curves(by_method, labels, fig, metrics=("success", "collision"), baselines=marks,
-                         title=f"{NETWORKS[net]}: greedy evaluation (IQM over seeds) and training returns")  # fmt: skip
+                         title=f"{NETWORKS.get(net, net)}: greedy evaluation (IQM over seeds) and training returns")  # fmt: skip
         figures.append(str(fig))
     print(md.read_text())
     print(f"wrote {md}, {js}, {', '.join(figures)}")

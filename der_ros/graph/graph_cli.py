@@ -69,7 +69,9 @@ def default_params_file() -> Path | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenario", choices=("ring", "urban"), default="ring", help="SUMO network (default ring)")
+    parser.add_argument("--scenario", default="ring",
+                        help="ring, urban (built in), exit (shipped) or the path of a scenario file (docs/scenarios.md); "
+                        "default ring")
     parser.add_argument("--steps", type=int, default=15000,
                         help="decision steps the bridge simulates before the run ends (default 15000, the paper's "
                         "training length: a few minutes on 2 cores)")

@@ -30,7 +30,7 @@ from der_ros.train.evaluation import (
     policy_files,
     write_eval_row,
 )
-from sumo_bridge import NETWORK_ENV_IDS
+from sumo_bridge import NETWORK_ENV_IDS, SCENARIO_ENV_ID
 from sumo_bridge.observation import ObservationConfig, observation_size
 
 __all__ = ["GraphEvaluator", "observation_shape", "scenario_env_config"]
@@ -61,6 +61,8 @@ def scenario_env_config(bridge_params: dict[str, Any]) -> EnvConfig:
     network = str(scenario.get("network", "ring"))
     scenario.pop("network", None)
     scenario.pop("gui", None)  # evaluations run headless
+    if network not in NETWORK_ENV_IDS:  # a scenario file (scenario.file); its other fields as overrides
+        return EnvConfig(id=SCENARIO_ENV_ID, kwargs={"scenario": scenario})
     return EnvConfig(id=NETWORK_ENV_IDS[network], kwargs={"scenario": scenario})
 
 
@@ -81,7 +83,7 @@ class GraphEvaluator:
         agent = params["agent_node"]["ros__parameters"]
         self.env_cfg = scenario_env_config(bridge)
         network = str(bridge.get("scenario.network", "ring"))
-        self.per_seed = _EPISODES_PER_SEED[network]
+        self.per_seed = _EPISODES_PER_SEED.get(network, 1)
         self.episodes, self.final_episodes = int(episodes), int(final_episodes)
         most = max(self.episodes, self.final_episodes)
         check_disjoint([int(bridge.get("scenario.seed", 0))],

@@ -64,6 +64,8 @@ from der_ros.nodes.param_check import (
     section_error,
 )
 from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
+from sumo_bridge.network_build import NETWORK_NAMES
+from sumo_bridge.scenario_file import load_scenario_config
 
 __all__ = [
     "ConfigParameters",
@@ -361,6 +363,15 @@ def build_graph_params(
 
     put("bridge_node", "max_steps", int(steps), "--steps")
     put("bridge_node", "scenario.network", scenario, "--scenario")
+    if scenario not in NETWORK_NAMES:  # a scenario file: its fields become the bridge's scenario.* parameters
+        for name, value in flatten_names(to_dict(load_scenario_config(scenario))).items():  # the file wins over base
+            if isinstance(value, (list, tuple)) and not value:
+                continue  # ROS cannot type an empty array: the node's default (empty) stays
+            put("bridge_node", f"scenario.{name}", list(value) if isinstance(value, tuple) else value, "--scenario")
+        file_cfg = load_scenario_config(scenario)
+        put("agent_node", "n_actions", len(file_cfg.actions), "--scenario")
+        for name, value in flatten_names(to_dict(file_cfg.observation)).items():  # the agent encodes the same way
+            put("agent_node", f"observation.{name}", value, "--scenario")
     if free_run:
         put("bridge_node", "mode", "free_run", "--free-run")
     if replay is not None:

@@ -159,7 +159,7 @@ class EnvProcess:
             raise RuntimeError(f"the environment process died (exit code {self._proc.exitcode})") from None
         if kind == "error":
             name, text = payload
-            if name == "ConfigError":  # a refused config stays a ConfigError (der train: exit 2, nothing written)
+            if name in ("ConfigError", "ScenarioFileError"):  # a refused config stays a ConfigError (exit 2)
                 raise ConfigError(text)
             raise RuntimeError(f"in the environment process: {name}: {text}")
         return payload

@@ -86,7 +86,7 @@ TUNING_EVAL_SEED_BASE = 1_500_000_000
 _SEED_SPAN = 500_000_000
 
 #: Episode outcomes: the SUMO env's ``info["event"]``; other envs 'terminated' / 'time_limit'.
-OUTCOMES = ("success", "collision", "time_limit", "terminated")
+OUTCOMES = ("success", "collision", "time_limit", "terminated", "missed")  # missed: a file scenario's exit
 
 EVALUATIONS_CSV = "evaluations.csv"
 FINAL_EVAL_JSON = "evaluation.json"
