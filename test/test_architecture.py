@@ -135,6 +135,7 @@ LAYERS: dict[str, int] = {
     "der_ros.replay": 1,
     "sumo_bridge": 1,
     "der_ros.agent": 2,
+    "der_ros.safety": 2,
     "der_ros.train": 3,
     "der_ros.bag": 4,
     "der_ros.experiments": 4,

@@ -23,6 +23,7 @@ import yaml
 from der_ros.agent.config import DQNConfig
 from der_ros.configuration import ConfigError, from_dict, param, read_yaml_mapping, reject_unknown_keys, to_dict
 from der_ros.replay.config import ReplayConfig
+from der_ros.safety.config import SafetyConfig
 
 __all__ = [
     "EnvConfig",
@@ -68,10 +69,17 @@ class EnvConfig:
     kwargs: dict = param(
         default_factory=dict, help="extra keyword arguments for gymnasium.make (e.g. a SUMO scenario's settings)"
     )
+    safety: SafetyConfig = param(
+        default_factory=SafetyConfig,
+        help="the shield between the agent and a lane-change env (docs/safety.md); kind 'none' leaves the env as is",
+    )
 
     def check(self) -> None:
         if not isinstance(self.kwargs, dict):
             raise ConfigError(f"kwargs = {self.kwargs!r}, expected a mapping of gymnasium.make keyword arguments")
+        if self.safety.enabled and not self.id.startswith("der_ros/"):
+            raise ConfigError(f"safety.kind = {self.safety.kind!r} needs a lane-change env ('der_ros/...'), "
+                              f"env.id is {self.id!r}")  # fmt: skip
 
 
 @dataclass
