@@ -240,8 +240,8 @@ def apply_dotted_overrides(
         if not isinstance(sec, dict):
             raise ConfigError(f"{source}: section {section!r} is not a mapping")
         head, _, rest = name.partition(".")
-        if rest and isinstance(sec.get(head), dict):  # inside a mapping-valued key: env.kwargs.scenario.time_aware
-            sec[head] = dict(sec[head])
+        if rest and isinstance(sec.get(head, {}), dict):  # inside a mapping-valued key: env.kwargs.scenario.time_aware
+            sec[head] = dict(sec.get(head, {}))  # (absent: a new mapping, e.g. env.safety.kind without a safety section)
             node = sec[head]
             parts = rest.split(".")
             for part in parts[:-1]:
