@@ -35,6 +35,7 @@ import yaml
 __all__ = [
     # topic names
     "CLOCK", "STATE", "REWARD", "ODOM", "EPISODE", "COMMAND", "METRICS", "BRIDGE_DIAGNOSTICS",
+    "AGENT_COMMAND", "SAFETY_EVENTS", "SAFETY_DIAGNOSTICS", "SAFETY_STATUS", "SAFETY_VERDICTS", "parse_safety_record",
     "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS",
     # status names, events, prefixes
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
@@ -66,6 +67,11 @@ METRICS = "agent/metrics"
 BRIDGE_DIAGNOSTICS = "bridge/diagnostics"
 SCENE_VEHICLES = "scene/vehicles"
 SCENE_ROAD = "scene/road"
+#: the agent's command when a safety node sits between agent and bridge (``der graph --safety``)
+AGENT_COMMAND = "agent/lane_change_cmd"
+#: the safety node's per-command record (one DiagnosticArray per command) and its counters
+SAFETY_EVENTS = "safety/interventions"
+SAFETY_DIAGNOSTICS = "safety/diagnostics"
 #: the topics a viewer (RViz, Foxglove, ``der replay render``) draws the scene from
 SCENE_TOPICS = (SCENE_VEHICLES, SCENE_ROAD)
 
@@ -76,6 +82,10 @@ EPISODE_STATUS = "episode"
 METRICS_STATUS = "agent/metrics"
 #: status name of the bridge's counters on ``bridge/diagnostics``
 BRIDGE_STATUS = "bridge"
+#: status name of the safety node's records and counters
+SAFETY_STATUS = "safety"
+#: status messages of a safety record: the command went through, or why it became keep lane
+SAFETY_VERDICTS: tuple[str, ...] = ("pass", "unsafe", "no_state", "stale", "malformed")
 #: status message of an episode's first event
 EPISODE_START = "start"
 #: status messages of an episode's end event (the env's ``info["event"]`` values)
@@ -375,6 +385,39 @@ TOPICS: tuple[TopicSpec, ...] = (
         record=False,
     ),
     TopicSpec(
+        name=AGENT_COMMAND,
+        msgtype="sensor_msgs/msg/Joy",
+        qos=QosSpec(depth=10),
+        publisher="agent_node (remapped from lane_change_cmd when der graph --safety is on)",
+        subscribers=("safety_node",),
+        rate="1 per decision step",
+        meaning="the agent's proposal, same layout as lane_change_cmd; the safety node forwards it or keep lane",
+        units="action index",
+        record=False,
+    ),
+    TopicSpec(
+        name=SAFETY_EVENTS,
+        msgtype="diagnostic_msgs/msg/DiagnosticArray",
+        qos=QosSpec(depth=50),
+        publisher="safety_node",
+        subscribers=("recorder_node", "der replay plot / render"),
+        rate="1 per decision step",
+        meaning=f"one status named '{SAFETY_STATUS}' per command; message = verdict ({'/'.join(SAFETY_VERDICTS)}); "
+        "values proposed, applied, interventions (running count); stamp t_k of the answered state",
+        units="action index, count",
+    ),
+    TopicSpec(
+        name=SAFETY_DIAGNOSTICS,
+        msgtype="diagnostic_msgs/msg/DiagnosticArray",
+        qos=QosSpec(depth=10),
+        publisher="safety_node",
+        subscribers=("der graph", "viewers"),
+        rate="every diagnostics_every commands and at exit",
+        meaning=f"one status named '{SAFETY_STATUS}': commands, interventions and one counter per verdict",
+        units="counts",
+        record=False,
+    ),
+    TopicSpec(
         name=SCENE_VEHICLES,
         msgtype="visualization_msgs/msg/MarkerArray",
         qos=QosSpec(depth=10),
@@ -619,6 +662,17 @@ def episode_values(episode: int, steps: int, ret: float | None = 0.0, lane_chang
         out.update({"return": float(ret), "lane_changes": int(lane_changes), "mean_speed": float(mean_speed)})
     out.update(extra)
     return out
+
+
+def parse_safety_record(msg: Any) -> tuple[int, str, int, int, int] | None:
+    """A ``safety/interventions`` DiagnosticArray -> (stamp_ns, verdict, proposed, applied, interventions),
+    None when it holds no safety status."""
+    for status in msg.status:
+        if status.name == SAFETY_STATUS:
+            values = parse_key_values(status.values)
+            return (header_ns(msg), str(status.message), int(float(values.get("proposed", -1))),
+                    int(float(values.get("applied", 0))), int(float(values.get("interventions", 0))))  # fmt: skip
+    return None
 
 
 def parse_key_values(values: Iterable[Any]) -> dict[str, int | float | str]:

@@ -134,3 +134,26 @@ def test_config_refuses_bad_values() -> None:
         from_dict(SafetyConfig, {"brake_min": 0.0})
     with pytest.raises(ConfigError, match="mode"):
         from_dict(SafetyConfig, {"mode": "veto"})
+
+
+def test_command_filter_fails_safe() -> None:
+    from der_ros.safety.command_filter import CommandFilter
+
+    checker = RssChecker(CFG)
+    f = CommandFilter(checker.mask, max_state_age=0.5)
+    free = situation()  # nothing on the left: a change is safe
+    blocked = situation(left_leader=(1.0, -5.0))
+    f.on_state(100, free, now=10.0)
+    assert (f.decide(100, 1, now=10.1).verdict, f.decide(100, 1, now=10.1).applied) == ("pass", 1)
+    assert f.decide(100, 1, now=10.7).verdict == "stale"  # the state is older than 0.5 s
+    assert f.decide(999, 1, now=10.1).verdict == "no_state"
+    d = f.decide(999, 0, now=10.1)
+    assert (d.verdict, d.applied, d.intervened) == ("pass", 0, False)  # keep needs no state
+    f.on_state(200, blocked, now=11.0)
+    d = f.decide(200, 1, now=11.0)
+    assert (d.verdict, d.applied, d.intervened) == ("unsafe", 0, True)
+    assert f.decide(100, 1, now=11.0).verdict == "stale"  # a newer state came since
+    f.on_state(300, None, now=12.0)  # a state that could not be read
+    assert f.decide(300, 2, now=12.0).verdict == "malformed"
+    assert f.decide(300, 7, now=12.0).verdict == "malformed"
+    assert f.interventions == 6 and f.counters["pass"] == 3  # two passes of the change, one keep
