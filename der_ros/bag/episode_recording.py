@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.bag.messages import command_message, reward_message, state_message
+from der_ros.bag.messages import command_message, reward_message, safety_message, state_message
 from der_ros.bag.scene_cdr import road_markers_cdr, vehicle_markers_cdr
 from der_ros.bag.writer import BagWriter
 from der_ros.contract import (
@@ -27,11 +27,13 @@ from der_ros.contract import (
     EPISODE_START,
     EPISODE_TIME_LIMIT,
     REWARD,
+    SAFETY_EVENTS,
     SCENE_ROAD,
     SCENE_VEHICLES,
     STATE,
     topic_spec,
 )
+from der_ros.safety.apply import replace_unsafe
 from sumo_bridge.observation import POINT_FIELDS, field_index
 
 __all__ = ["RecordedEpisode", "record_episode"]
@@ -53,18 +55,23 @@ class RecordedEpisode:
 
 
 def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path, *, seed: int | None,
-                   episode: int = 0, frame_id: str = "map") -> RecordedEpisode:  # fmt: skip
+                   episode: int = 0, frame_id: str = "map",
+                   shield: Callable[[np.ndarray], np.ndarray] | None = None) -> RecordedEpisode:  # fmt: skip
     """Run one episode of ``env`` (a LaneChangeEnv, unwrapped) with ``act(observation) -> action``
     from ``reset(seed=seed)`` and write it to a new bag directory ``path``.
 
-    The env's scene is enabled here (position subscriptions from this reset on).
+    The env's scene is enabled here (position subscriptions from this reset on). ``shield`` (a mask
+    of the safe actions from the points, e.g. ``RssChecker.mask``): the command goes through it as
+    through the graph's safety node: an unsafe one becomes keep lane, and every command gets its
+    ``safety/interventions`` record.
     """
     env.enable_scene()
     step_ns = int(round(float(env.step_seconds) * _NS))
     writer = BagWriter(path, custom_data={"der_ros/recorded_by": "der_ros.bag.episode_recording"})
     try:
-        for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND):
+        for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND) + ((SAFETY_EVENTS,) if shield else ()):
             writer.add_topic(name, topic_spec(name).msgtype)
+        vetoes = 0
         obs, info = env.reset(seed=seed)
         writer.write(SCENE_ROAD, 0, road_markers_cdr(env.lanes(), 0, frame_id))
         writer.mark_episode(0, episode=episode, event=EPISODE_START, stamp_ns=0)
@@ -84,6 +91,12 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
                                     lane_changes=lane_changes, mean_speed=speed_sum / max(k, 1), stamp_ns=t)  # fmt: skip
                 return RecordedEpisode(Path(path), k, ret, str(event), lane_changes)
             action = int(act(obs))
+            if shield is not None:  # as the safety node: proposal in, the command or keep lane out
+                proposed = action
+                action, vetoed = replace_unsafe(proposed, shield(info["points"]))
+                vetoes += vetoed
+                writer.write_message(SAFETY_EVENTS, t + _AT_COMMAND, safety_message(
+                    t, "unsafe" if vetoed else "pass", proposed, action, vetoes))  # fmt: skip
             writer.write_message(COMMAND, t + _AT_COMMAND, command_message(t, action, "der_ros.bag.episode_recording"))
             obs, r, terminated, truncated, info = env.step(action)
             reward, applied = float(r), action

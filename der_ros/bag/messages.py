@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from der_ros.bag.writer import jazzy_typestore
-from der_ros.contract import POINTFIELD_FLOAT64, applied_action_frame
+from der_ros.contract import POINTFIELD_FLOAT64, SAFETY_STATUS, applied_action_frame
 
 __all__ = ["stamp", "clock_message", "reward_message", "state_message", "command_message"]
 
@@ -67,3 +67,14 @@ def command_message(ns: int, action: int, sender: str = "") -> Any:
     """``lane_change_cmd``: buttons[0] = action, stamped like the state it answers."""
     return _types()["sensor_msgs/msg/Joy"](header=_header(ns, sender), axes=np.zeros(0, dtype=np.float32),
                                            buttons=np.array([int(action)], dtype=np.int32))  # fmt: skip
+
+
+def safety_message(ns: int, verdict: str, proposed: int, applied: int, interventions: int) -> Any:
+    """``safety/interventions``: one record per command, as the safety node publishes it
+    (:func:`der_ros.contract.parse_safety_record` reads it back)."""
+    t = _types()
+    values = [t["diagnostic_msgs/msg/KeyValue"](key=k, value=str(int(v)))
+              for k, v in (("proposed", proposed), ("applied", applied), ("interventions", interventions))]  # fmt: skip
+    status = t["diagnostic_msgs/msg/DiagnosticStatus"](level=1 if applied != proposed else 0, name=SAFETY_STATUS,
+                                                      message=verdict, hardware_id="", values=values)  # fmt: skip
+    return t["diagnostic_msgs/msg/DiagnosticArray"](header=_header(ns, ""), status=[status])
