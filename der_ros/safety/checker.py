@@ -58,8 +58,8 @@ class RssChecker:
         """Safe gap (m) to a new follower: the follower is the rear car."""
         return safe_longitudinal_distance(v_follower, v_ego, *self._params) + self.cfg.margin
 
-    def change_safe(self, points: np.ndarray, action: int) -> bool:
-        """True when the lane change ``action`` (1 left, 2 right) is safe in ``points``."""
+    def change_safe(self, points: np.ndarray | list[list[float]], action: int) -> bool:
+        """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists)."""
         side, offset = SIDES[action]
         ego = points[0]
         v_ego, lane, lanes = float(ego[_SPEED]), float(ego[_LANE]), float(ego[_LANES])
@@ -86,6 +86,7 @@ class RssChecker:
         pts = np.asarray(points, dtype=np.float64)
         if pts.shape != _SHAPE:
             return out
-        out[1] = self.change_safe(pts, 1)
-        out[2] = self.change_safe(pts, 2)
+        rows = pts.tolist()  # plain floats: several times faster to index than numpy scalars at this size
+        out[1] = self.change_safe(rows, 1)
+        out[2] = self.change_safe(rows, 2)
         return out
