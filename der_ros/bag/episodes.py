@@ -229,7 +229,6 @@ class EpisodeSummary:
             "outcome": self.outcome,
             "mean_speed": self.mean_speed,
             "source": self.source,
-            "interventions": self.interventions,
         }
 
 
