@@ -119,10 +119,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline-params", dest="baseline_params", default=None,
                         help="tuned gap-acceptance thresholds (default config/baselines.yaml)")  # fmt: skip
     parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
-    parser.add_argument("--shield", choices=SAFETY_KINDS, default="none",
+    parser.add_argument("--shield", "--safety", dest="shield", choices=SAFETY_KINDS, default="none",
                         help="also run every method behind this safety shield (rows '<method>+shield', and the "
                         "baselines 'immediate+shield', 'random+shield', 'gap_acceptance+shield'; docs/safety.md)")  # fmt: skip
-    parser.add_argument("--shield-mode", dest="shield_mode", choices=SAFETY_MODES, default=None,
+    parser.add_argument("--shield-mode", "--safety-mode", dest="shield_mode", choices=SAFETY_MODES, default=None,
                         help="replace or mask for the shielded rows (default: the config's env.safety.mode)")  # fmt: skip
     parser.add_argument("--shield-only", dest="shield_only", action="store_true",
                         help="run only the shielded rows (the unshielded ones are reused when present)")  # fmt: skip
