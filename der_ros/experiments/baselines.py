@@ -315,6 +315,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="tuned thresholds (config/baselines.yaml)")
     parser.add_argument("--out", default="runs/baselines", help="folder of the cached evaluations")
     parser.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
+    parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                        help="run only these baselines (e.g. immediate gap_acceptance; default: all of the env's)")
     parser.add_argument("--safety", choices=SAFETY_KINDS, default="none",
                         help="also run immediate, random and gap acceptance behind this shield (rows '<name>+shield')")
     parser.add_argument("--safety-mode", dest="safety_mode", choices=SAFETY_MODES, default=None,
@@ -346,12 +348,12 @@ def run(args: argparse.Namespace) -> int:
         gap = load_gap_params(net, args.params) if net else None
         jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, EVAL_SEED_BASE,
                             gap if name == "gap_acceptance" else None, str(Path(args.out) / (net or env_cfg.id) / name))
-                for name in baseline_names(env_cfg)]  # fmt: skip
+                for name in baseline_names(env_cfg) if args.only is None or name in args.only]  # fmt: skip
         if args.safety != "none" and net is not None:
             env_s = shielded_env_config(env_cfg, args.safety, args.safety_mode)
             jobs += [BaselineJob(env_s, name + _SHIELD, args.episodes, per_seed, EVAL_SEED_BASE,
                                  gap if name == "gap_acceptance" else None, str(Path(args.out) / net / (name + _SHIELD)))
-                     for name in SHIELDED_BASELINES]  # fmt: skip
+                     for name in SHIELDED_BASELINES if args.only is None or name in args.only]  # fmt: skip
         results = run_baselines(jobs, args.jobs)
         for job in jobs:
             r = results[job.out_dir]
