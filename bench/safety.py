@@ -112,8 +112,8 @@ def main() -> int:
               "rss_mask_vs_forward": round(rss_us / forward_us, 3), "rss_mask_vs_env_step": round(rss_us / env_step_us, 4)}
     try:
         sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
-        from test_safety_rss import _state  # the fully-filled ad-rss states (its pitfalls: test/test_safety_rss.py)
         from ad_rss import physics, rss
+        from test_safety_rss import _state  # the fully-filled ad-rss states (its pitfalls: test/test_safety_rss.py)
 
         pairs = [(_state(float(p[0][3]) + 1.0, 0.5, 2.6, 4.5, 9.0), _state(float(p[0][3]), 0.5, 2.6, 4.5, 9.0))
                  for p in states[:100]]  # fmt: skip

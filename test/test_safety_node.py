@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,7 +35,7 @@ def state(left_leader_gap: float | None, speed: float = 10.0) -> np.ndarray:
     return pts
 
 
-def test_safety_node_vetoes_and_fails_safe(ros_graph) -> None:
+def test_safety_node_vetoes_and_fails_safe(ros_graph) -> None:  # noqa: F811
     node = ros_graph.start_node("der_ros.nodes.safety_node", params_file=PARAMS_FILE, params={"max_state_age": 0.5})
     probe = ros_graph.probe
     out = probe.collect(ct.COMMAND, Joy)
@@ -70,7 +69,7 @@ def test_safety_node_vetoes_and_fails_safe(ros_graph) -> None:
     assert ct.parse_safety_record(records[-1])[4] == 4  # four interventions so far
 
 
-def _run(ros_graph, steps: int, shielded: bool, seed: int) -> tuple[int, int, int]:
+def _run(ros_graph, steps: int, shielded: bool, seed: int) -> tuple[int, int, int]:  # noqa: F811
     """A bridge on the ring and a scripted agent that always commands "left" (the target lane is the left
     one) the moment a state arrives. Returns (episodes, caused collisions, interventions)."""
     probe = ros_graph.probe
@@ -96,7 +95,7 @@ def _run(ros_graph, steps: int, shielded: bool, seed: int) -> tuple[int, int, in
 
 
 @pytest.mark.parametrize("shielded", [False, True], ids=["unshielded", "behind-safety-node"])
-def test_change_now_agent_behind_the_safety_node_causes_no_collision(ros_graph, shielded: bool) -> None:
+def test_change_now_agent_behind_the_safety_node_causes_no_collision(ros_graph, shielded: bool) -> None:  # noqa: F811
     episodes, caused, interventions = _run(ros_graph, steps=400, shielded=shielded, seed=3)
     print(f"shielded={shielded}: {episodes} episodes, {caused} caused collisions, {interventions} interventions")
     assert episodes >= 8

@@ -16,7 +16,6 @@ from der_ros.bag.render import VETO, RenderOptions, caption_lines, frame_view
 from der_ros.bag.scene_frames import read_scene
 from der_ros.safety import RssChecker, SafetyConfig
 from sumo_bridge.lane_change_env import LaneChangeEnv
-from sumo_bridge.policies import immediate_policy
 from sumo_bridge.scenario import ScenarioConfig
 
 

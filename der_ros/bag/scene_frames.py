@@ -27,9 +27,9 @@ from der_ros.bag.reader import BagError, BagReader
 from der_ros.bag.scene_cdr import first_stamp_ns
 from der_ros.contract import (
     COMMAND,
-    SAFETY_EVENTS,
     EGO_ROLE,
     REWARD,
+    SAFETY_EVENTS,
     SCENE_ROAD,
     SCENE_VEHICLES,
     LaneLine,

@@ -62,8 +62,8 @@ from der_ros.experiments.plots import plot_eval_curves
 from der_ros.experiments.report import run_details, total_training_time, write_markdown
 from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
-    RunResult,
     SHIELD_SUFFIX,
+    RunResult,
     RunSpec,
     add_suite_arguments,
     environment_info,

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import yaml
 
+from der_ros.configuration import ConfigError
+from der_ros.contract import AGENT_COMMAND, COMMAND
 from der_ros.graph.evaluation import GraphEvaluator
 from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.progress import Progress
-from der_ros.configuration import ConfigError
-from der_ros.contract import AGENT_COMMAND, COMMAND
 from der_ros.graph.report import bridge_summary, report, safety_summary, snapshot_from_bag, unanswered_run
 from der_ros.graph.runner import ChildFailed, ProcessSpec, RunOutcome, Supervisor, reserve_domain_id, ros_environment
 from der_ros.interrupts import interrupts_raise
