@@ -65,6 +65,12 @@ def scenario_env_config(bridge_params: dict[str, Any]) -> EnvConfig:
     return EnvConfig(id=NETWORK_ENV_IDS[network], kwargs={"scenario": scenario})
 
 
+def graph_safety_config(params: dict[str, Any]) -> SafetyConfig:
+    """The safety node's shield (its ``safety.*`` parameters), in replace mode as the node applies it."""
+    shield = _nested(params["safety_node"]["ros__parameters"], "safety")
+    return from_dict(SafetyConfig, {**shield, "mode": "replace"}, source="safety_node")
+
+
 def observation_shape(env_cfg: EnvConfig) -> tuple[int]:
     """The observation shape of a lane-change env config (its ``scenario.observation`` fields decide
     whether the required-deceleration block is in)."""
@@ -82,8 +88,7 @@ class GraphEvaluator:
         agent = params["agent_node"]["ros__parameters"]
         self.env_cfg = scenario_env_config(bridge)
         if shielded:  # evaluated behind the same shield as the graph's safety node (replace mode)
-            shield = _nested(params["safety_node"]["ros__parameters"], "safety")
-            self.env_cfg.safety = from_dict(SafetyConfig, {**shield, "mode": "replace"}, source="safety_node")
+            self.env_cfg.safety = graph_safety_config(params)
         network = str(bridge.get("scenario.network", "ring"))
         self.per_seed = _EPISODES_PER_SEED[network]
         self.episodes, self.final_episodes = int(episodes), int(final_episodes)

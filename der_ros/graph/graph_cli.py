@@ -28,7 +28,7 @@ import yaml
 
 from der_ros.configuration import ConfigError
 from der_ros.contract import AGENT_COMMAND, COMMAND
-from der_ros.graph.evaluation import GraphEvaluator
+from der_ros.graph.evaluation import GraphEvaluator, graph_safety_config
 from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.progress import Progress
 from der_ros.graph.report import bridge_summary, report, safety_summary, snapshot_from_bag, unanswered_run
@@ -224,7 +224,8 @@ def run(args: argparse.Namespace) -> int:
     if outcome.ok and not (args.no_plots or args.no_gif) and (run_dir / "agent.pt").is_file():
         print("der graph: recording and rendering one greedy episode of the trained agent ...", file=sys.stderr,
               flush=True)  # fmt: skip
-        greedy = greedy_episode_gif(run_dir, run_dir / "agent.pt", params)
+        greedy = greedy_episode_gif(run_dir, run_dir / "agent.pt", params,
+                                    shield=graph_safety_config(params) if safety != "none" else None)
     return report(outcome, snap, run_dir, wall, args, params, bridge, final, greedy, shield)
 
 
