@@ -259,6 +259,7 @@ def _train(
     agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
     if point is not None:
         agent.load_state_dict(point.agent_state)
+    target_mask = target_mask_for(cfg.env)  # mask mode: the next state's mask in the target (refused before any write)
     run_path.mkdir(parents=True, exist_ok=True)
     save_experiment_config(cfg, run_path / "config.yaml")
     acc = MeanAccumulator()
@@ -298,7 +299,7 @@ def _train(
     # the shield (env.safety, docs/safety.md): the verdict on ``obs``; the learner stores the applied action
     mask: np.ndarray | None = start_info.get("action_mask")
     mask_mode = cfg.env.safety.enabled and cfg.env.safety.mode == "mask"
-    agent.target_mask = target_mask_for(cfg.env)
+    agent.target_mask = target_mask
 
     redo_eval = bool(t_cfg.eval_interval) and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps
     if resume_step is not None and redo_eval:  # the evaluation at this step is redone below, once
