@@ -59,6 +59,7 @@ setup(
             "bridge_node = der_ros.nodes.bridge_node:main",
             "agent_node = der_ros.nodes.agent_node:main",
             "recorder_node = der_ros.nodes.recorder_node:main",
+            "safety_node = der_ros.nodes.safety_node:main",
         ],
     },
 )

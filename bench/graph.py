@@ -16,6 +16,11 @@ Runs, on the ring scenario with the agent/replay settings of ``config/graph.para
    one process, the marker work itself: env steps with and without the scene's subscriptions, and
    ``env.scene()`` + encoding per step (``scene_*``).
 
+``--safety`` also runs the training graph (markers on) with the safety node between agent and
+bridge (``der graph --safety rss``, the default of ``der graph``), alternating with the graph
+without it in each pair: ``safety_*`` figures (steps/s, ratio to in-process, round trip, which then
+includes the safety node's hop) and ``safety_cost_pairs`` (1 - with/without, within each pair).
+
 ``--record`` adds the recorder node (all default topics, so the markers too when they are on) to
 both training graphs: the cost of recording them as well (a third process on two cores).
 
@@ -168,8 +173,9 @@ def _param_args(params: dict) -> list[str]:
 
 
 def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, markers: bool = True,
-              record: bool = False) -> dict:  # fmt: skip
-    """Start (recorder +) agent + bridge, wait for the bridge to finish, return its summary."""
+              record: bool = False, safety: bool = False) -> dict:  # fmt: skip
+    """Start (recorder +) agent (+ safety node) + bridge, wait for the bridge to finish, return its summary."""
+    from der_ros.graph.graph_cli import AGENT_REMAP
     from der_ros.graph.supervisor import reserve_domain_id
 
     lease = reserve_domain_id()  # same lock files as the test harness: never a shared domain
@@ -178,6 +184,7 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, 
     agent_params = {**agent_overrides, "evaluate": evaluate, "checkpoint_out": str(workdir / "agent.pt")}
     procs = []
     tag = ("_eval" if evaluate else "") + ("" if markers else "_no_markers") + ("_record" if record else "")
+    tag += "_safety" if safety else ""
     try:
         agent_log = open(workdir / f"agent{tag}.log", "wb")  # noqa: SIM115
         bridge_log_path = workdir / f"bridge{tag}.log"
@@ -191,8 +198,13 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, 
                 base + ["der_ros.nodes.recorder_node"] + ros + _param_args({"output": str(workdir / f"bag{tag}")}),
                 env=env, stdout=rec_log, stderr=subprocess.STDOUT, start_new_session=True))  # fmt: skip
             bridge_params["min_subscribers"] = 2  # agent and recorder, as der graph does
-        procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + _param_args(agent_params),
+        remap = ["-r", AGENT_REMAP] if safety else []
+        procs.append(subprocess.Popen(base + ["der_ros.nodes.agent_node"] + ros + remap + _param_args(agent_params),
                                       env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
+        if safety:
+            safety_log = open(workdir / f"safety{tag}.log", "wb")  # noqa: SIM115
+            procs.append(subprocess.Popen(base + ["der_ros.nodes.safety_node"] + ros, env=env, stdout=safety_log,
+                                          stderr=subprocess.STDOUT, start_new_session=True))  # fmt: skip
         bridge = subprocess.Popen(
             base + ["der_ros.nodes.bridge_node"] + ros + _param_args(bridge_params),
             env=env, stdout=bridge_log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -227,6 +239,8 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=3000, help="environment steps per run")
     parser.add_argument("--quick", action="store_true", help="600 steps, small learning_starts (smoke run)")
     parser.add_argument("--record", action="store_true", help="run the recorder node in both training graphs too")
+    parser.add_argument("--safety", action="store_true",
+                        help="also the training graph with the safety node in the loop, in each pair (safety_*)")
     parser.add_argument("--pairs", type=int, default=1,
                         help="training graphs without / with markers, alternately, this many times each (medians "
                         "reported; on a shared machine one pair can differ by 30%% either way)")
@@ -236,7 +250,7 @@ def main() -> int:
     workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
     scene = scene_cost(400 if args.quick else 1000)
     print(f"scene markers in one process (ring): {json.dumps(scene)}", file=sys.stderr)
-    plains, graphs, inprocs = [], [], []
+    plains, graphs, inprocs, shielded, unshielded = [], [], [], [], []
     inproc_episodes = 0
     for pair in range(max(1, args.pairs)):
         pair_dir = workdir / f"pair{pair}"
@@ -250,6 +264,13 @@ def main() -> int:
             run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=markers, record=args.record)
             (graphs if markers else plains).append(run)
             print(f"graph (training, markers {'on' if markers else 'off'}): {json.dumps(run)}", file=sys.stderr)
+        if args.safety:  # with and without the safety node, ABBA as well; markers on (der graph's default)
+            for with_safety in (True, False) if pair % 2 == 0 else (False, True):
+                run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, record=args.record,
+                                safety=with_safety)  # fmt: skip
+                (shielded if with_safety else unshielded).append(run)
+                print(f"graph (training, safety node {'on' if with_safety else 'off'}): {json.dumps(run)}",
+                      file=sys.stderr)  # fmt: skip
     plain, graph = _median_run(plains), _median_run(graphs)
     inproc = sorted(inprocs)[len(inprocs) // 2]
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
@@ -287,6 +308,18 @@ def main() -> int:
         "eval_roundtrip_p99_ms": round(graph_eval["roundtrip_p99_ms"], 3),
         "logs": str(workdir),
     }
+    if shielded:
+        safe = _median_run(shielded)
+        result.update({
+            "safety_graph_steps_per_s": round(safe["steps_per_s"], 1),
+            "safety_graph_ratio": round(safe["steps_per_s"] / inproc, 3),
+            "safety_roundtrip_p50_ms": round(safe["roundtrip_p50_ms"], 3),
+            "safety_roundtrip_p99_ms": round(safe["roundtrip_p99_ms"], 3),
+            "safety_timeouts": safe["commands/timeouts"],
+            "safety_off_roundtrip_p50_ms": round(_median_run(unshielded)["roundtrip_p50_ms"], 3),
+            "safety_cost_pairs": [round(1.0 - on["steps_per_s"] / off["steps_per_s"], 3)
+                                  for on, off in zip(shielded, unshielded)],
+        })  # fmt: skip
     print(json.dumps(result))
     return 0
 

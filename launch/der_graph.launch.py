@@ -1,6 +1,10 @@
-"""Launch the der_ros graph on a full ROS 2 install: SUMO bridge, DER agent and MCAP recorder.
+"""Launch the der_ros graph on a full ROS 2 install: SUMO bridge, DER agent, safety node and MCAP recorder.
 
-    ros2 launch der_ros der_graph.launch.py steps:=3000 scenario:=ring replay:=der
+    ros2 launch der_ros der_graph.launch.py steps:=3000 scenario:=ring replay:=der safety:=rss
+
+The agent's command is remapped to ``agent/lane_change_cmd``; the safety node forwards it to the
+bridge or replaces an unsafe change by keep lane (``safety:=none`` makes it a plain relay;
+docs/safety.md).
 
 Parameters come from ``config/graph.params.yaml`` of the package share directory (override
 with ``params_file:=...``); the launch arguments below replace single values of it. Without
@@ -29,6 +33,8 @@ def generate_launch_description() -> LaunchDescription:
             DeclareLaunchArgument("scenario", default_value="ring", description="SUMO network: ring or urban"),
             DeclareLaunchArgument("replay", default_value="der", description="replay kind: uniform, per or der"),
             DeclareLaunchArgument("lam", default_value="0.5", description="DER lambda (replay.lam)"),
+            DeclareLaunchArgument("safety", default_value="rss",
+                                  description="the shield: rss (default) or none (the safety node relays every command)"),
             # recorder first in the list: it should be subscribed before data flows
             Node(
                 package="der_ros",
@@ -48,6 +54,14 @@ def generate_launch_description() -> LaunchDescription:
                         "replay.lam": ParameterValue(LaunchConfiguration("lam"), value_type=float),
                     },
                 ],
+                remappings=[("lane_change_cmd", "agent/lane_change_cmd")],
+                output="screen",
+            ),
+            Node(
+                package="der_ros",
+                executable="safety_node",
+                name="safety_node",
+                parameters=[params_file, {"safety.kind": LaunchConfiguration("safety")}],
                 output="screen",
             ),
             Node(

@@ -137,6 +137,7 @@ LAYERS: dict[str, int] = {
     "der_ros.bag": 1,  # MCAP files alone
     "sumo_bridge": 1,
     "der_ros.agent": 2,
+    "der_ros.safety": 2,
     "der_ros.train": 3,
     "der_ros.offline": 4,  # tools on recorded bags: stand on bag, contract and train
     "der_ros.experiments": 4,

@@ -120,6 +120,10 @@ class DQNAgent:
         self._grad_out = torch.zeros(dqn_cfg.batch_size, self.n_actions, device=self.device)
         self.epsilon_schedule = LinearSchedule(dqn_cfg.epsilon_start, dqn_cfg.epsilon_end, dqn_cfg.epsilon_decay_steps)
 
+        #: mask mode of a safety shield: next observations (batch) -> bool (batch, n_actions), the actions
+        #: allowed in s'; the target's max then runs over those only (der_ros.safety.observation_mask).
+        #: None (the default): the plain max of eq. 1, bit-identical to an agent without the attribute.
+        self.target_mask: Callable[[np.ndarray], np.ndarray] | None = None
         #: environment steps observed (drives epsilon, learning_starts and train_freq)
         self.steps = 0
         #: gradient steps taken (drives the target-network update)
@@ -138,9 +142,22 @@ class DQNAgent:
             x = torch.from_numpy(np.asarray(obs, dtype=self.obs_dtype)).unsqueeze(0).to(self.device)
             return self.q_net(x)[0].cpu().numpy()
 
-    def act(self, obs: np.ndarray, explore: bool = True) -> int:
-        """Epsilon-greedy action: uniform random with probability epsilon, else argmax_a Q(obs, a)."""
+    def act(self, obs: np.ndarray, explore: bool = True, mask: np.ndarray | None = None) -> int:
+        """Epsilon-greedy action: uniform random with probability epsilon, else argmax_a Q(obs, a).
+
+        ``mask`` (a safety shield in mask mode, :mod:`der_ros.safety.apply`): bool per action; both the
+        random and the greedy choice are then over the allowed actions only. None: every action, and
+        the same random draws as without the argument.
+        """
         eps = self.epsilon if explore else self.cfg.eval_epsilon
+        if mask is not None:
+            allowed = np.flatnonzero(np.asarray(mask, dtype=bool))
+            if allowed.size == 0:
+                raise ValueError("act(): the action mask allows no action")
+            if eps > 0.0 and self.rng.random() < eps:
+                return int(allowed[self.rng.integers(allowed.size)])
+            q = self.q_values(obs)
+            return int(allowed[int(np.argmax(q[allowed]))])
         if eps > 0.0 and self.rng.random() < eps:
             return int(self.rng.integers(self.n_actions))
         if self._act_layers is not None:  # the same forward as q_net's, on detached views of its weights
@@ -222,21 +239,35 @@ class DQNAgent:
         """y = r + gamma * (1 - terminated) * V_target(s') (eq. 1); truncation never cuts the bootstrap."""
         return self._targets(rewards, next_obs, self.cfg.gamma * (1.0 - terminated.float()))
 
-    def _targets(self, rewards: torch.Tensor, next_obs: torch.Tensor, discount: torch.Tensor) -> torch.Tensor:
-        """y = r + discount * V_target(s'), ``discount`` = gamma, or 0 where the episode terminated."""
+    def _targets(
+        self, rewards: torch.Tensor, next_obs: torch.Tensor, discount: torch.Tensor, forbid: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """y = r + discount * V_target(s'), ``discount`` = gamma, or 0 where the episode terminated.
+
+        ``forbid`` (bool, batch x actions; mask mode of a shield): actions not allowed in s' are left
+        out of the max (and of double DQN's online argmax).
+        """
         if self._target_layers is not None:  # the MLP on detached weights: the same kernels, no autograd
             next_q = mlp_forward(next_obs, self._target_layers)
+            if forbid is not None:
+                next_q = next_q.masked_fill(forbid, -math.inf)
             if self.cfg.double_dqn:
-                best = mlp_forward(next_obs, self._online_layers).argmax(1, keepdim=True)  # type: ignore[arg-type]
-                next_v = next_q.gather(1, best).squeeze(1)
+                online = mlp_forward(next_obs, self._online_layers)  # type: ignore[arg-type]
+                if forbid is not None:
+                    online = online.masked_fill(forbid, -math.inf)
+                next_v = next_q.gather(1, online.argmax(1, keepdim=True)).squeeze(1)
             else:
                 next_v = next_q.amax(1)
             return rewards + discount * next_v
         with torch.no_grad():
             next_q = self.target_net(next_obs)
+            if forbid is not None:
+                next_q = next_q.masked_fill(forbid, -math.inf)
             if self.cfg.double_dqn:
-                best = self.q_net(next_obs).argmax(1, keepdim=True)
-                next_v = next_q.gather(1, best).squeeze(1)
+                online = self.q_net(next_obs)
+                if forbid is not None:
+                    online = online.masked_fill(forbid, -math.inf)
+                next_v = next_q.gather(1, online.argmax(1, keepdim=True)).squeeze(1)
             else:
                 next_v = next_q.amax(1)
             return rewards + discount * next_v
@@ -273,7 +304,11 @@ class DQNAgent:
         weighted = getattr(self.replay, "importance_weighted", True)
         weights = self._tensor(batch.weights.astype(np.float32, copy=False)) if weighted or self._mlp is None else None
 
-        y = self._targets(rewards, next_obs, discount)
+        forbid = None
+        if self.target_mask is not None:  # mask mode: the max over the actions allowed in s'
+            allowed = np.asarray(self.target_mask(batch.next_obs), dtype=bool)
+            forbid = self._tensor(~allowed)
+        y = self._targets(rewards, next_obs, discount, forbid)
         if self._mlp is not None:
             q = self._mlp.forward(obs).gather(1, actions).squeeze(1)
             td = y - q  # delta of eq. 2

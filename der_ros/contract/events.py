@@ -12,7 +12,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from der_ros.contract.cdr import header_ns
-from der_ros.contract.topics import EPISODE_STATUS
+from der_ros.contract.topics import EPISODE_STATUS, SAFETY_STATUS
 
 __all__ = [
     "format_value",
@@ -20,6 +20,7 @@ __all__ = [
     "parse_key_values",
     "parse_episode_events",
     "diagnostics_to_metrics",
+    "parse_safety_record",
 ]
 
 
@@ -78,3 +79,14 @@ def diagnostics_to_metrics(msg: Any, names: Sequence[str] | None = None) -> dict
             except ValueError:
                 continue
     return out
+
+
+def parse_safety_record(msg: Any) -> tuple[int, str, int, int, int] | None:
+    """A ``safety/interventions`` DiagnosticArray -> (stamp_ns, verdict, proposed, applied, interventions),
+    None when it holds no safety status."""
+    for status in msg.status:
+        if status.name == SAFETY_STATUS:
+            values = parse_key_values(status.values)
+            return (header_ns(msg), str(status.message), int(float(values.get("proposed", -1))),
+                    int(float(values.get("applied", 0))), int(float(values.get("interventions", 0))))  # fmt: skip
+    return None

@@ -35,6 +35,7 @@ __all__ = [
     # topic names
     "CLOCK", "STATE", "REWARD", "ODOM", "EPISODE", "COMMAND", "METRICS", "BRIDGE_DIAGNOSTICS",
     "SCENE_VEHICLES", "SCENE_ROAD", "SCENE_TOPICS", "TF", "TF_MSGTYPE", "TF_QOS",
+    "AGENT_COMMAND", "SAFETY_EVENTS", "SAFETY_DIAGNOSTICS", "SAFETY_STATUS", "SAFETY_VERDICTS",
     # status names and episode events
     "EPISODE_STATUS", "METRICS_STATUS", "BRIDGE_STATUS", "EPISODE_START", "EPISODE_SUCCESS", "EPISODE_COLLISION",
     "EPISODE_TIME_LIMIT", "EPISODE_MISSED", "EPISODE_ENDS", "EPISODE_EVENTS",
@@ -56,6 +57,11 @@ METRICS = "agent/metrics"
 BRIDGE_DIAGNOSTICS = "bridge/diagnostics"
 SCENE_VEHICLES = "scene/vehicles"
 SCENE_ROAD = "scene/road"
+#: the agent's command when a safety node sits between agent and bridge (``der graph --safety``)
+AGENT_COMMAND = "agent/lane_change_cmd"
+#: the safety node's per-command record (one DiagnosticArray per command) and its counters
+SAFETY_EVENTS = "safety/interventions"
+SAFETY_DIAGNOSTICS = "safety/diagnostics"
 #: the topics a viewer (RViz, Foxglove, ``der bag render``) draws the scene from
 SCENE_TOPICS = (SCENE_VEHICLES, SCENE_ROAD)
 #: ``map -> ego`` (the ego's pose, the parent frame of ``state``) for viewers that place frames from
@@ -72,6 +78,10 @@ EPISODE_STATUS = "episode"
 METRICS_STATUS = "agent/metrics"
 #: status name of the bridge's counters on ``bridge/diagnostics``
 BRIDGE_STATUS = "bridge"
+#: status name of the safety node's records and counters
+SAFETY_STATUS = "safety"
+#: status messages of a safety record: the command went through, or why it became keep lane
+SAFETY_VERDICTS: tuple[str, ...] = ("pass", "unsafe", "no_state", "stale", "malformed")
 #: status message of an episode's first event
 EPISODE_START = "start"
 #: status messages of an episode's end event (the env's ``info["event"]`` values)
@@ -362,6 +372,39 @@ TOPICS: tuple[TopicSpec, ...] = (
         meaning=f"one status named '{BRIDGE_STATUS}': sim_steps, steps_per_s, commands/* (accepted and every "
         "rejection), events/*, roundtrip_p50_ms / roundtrip_p99_ms; WARN once a command was rejected",
         units="counts, steps/s, ms",
+    ),
+    TopicSpec(
+        name=AGENT_COMMAND,
+        msgtype="sensor_msgs/msg/Joy",
+        qos=QosSpec(depth=10),
+        publisher="agent_node (remapped from lane_change_cmd when der graph --safety is on)",
+        subscribers=("safety_node",),
+        rate="1 per decision step",
+        meaning="the agent's proposal, same layout as lane_change_cmd; the safety node forwards it or keep lane",
+        units="action index",
+        record=False,
+    ),
+    TopicSpec(
+        name=SAFETY_EVENTS,
+        msgtype="diagnostic_msgs/msg/DiagnosticArray",
+        qos=QosSpec(depth=50),
+        publisher="safety_node",
+        subscribers=("recorder_node", "der bag plot / render"),
+        rate="1 per decision step",
+        meaning=f"one status named '{SAFETY_STATUS}' per command; message = verdict ({'/'.join(SAFETY_VERDICTS)}); "
+        "values proposed, applied, interventions (running count); stamp t_k of the answered state",
+        units="action index, count",
+    ),
+    TopicSpec(
+        name=SAFETY_DIAGNOSTICS,
+        msgtype="diagnostic_msgs/msg/DiagnosticArray",
+        qos=QosSpec(depth=10),
+        publisher="safety_node",
+        subscribers=("der graph", "viewers"),
+        rate="every diagnostics_every commands and at exit",
+        meaning=f"one status named '{SAFETY_STATUS}': commands, interventions and one counter per verdict",
+        units="counts",
+        record=False,
     ),
     TopicSpec(
         name=SCENE_VEHICLES,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import itertools
 import json
 import logging
@@ -41,8 +42,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from der_ros.configuration import ConfigError, read_yaml_mapping
+from der_ros.configuration import ConfigError, read_yaml_mapping, to_dict, validate
 from der_ros.experiments.table_report import write_markdown
+from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import (
@@ -65,6 +67,8 @@ __all__ = [
     "load_gap_params",
     "baseline_policy",
     "baseline_env_config",
+    "shielded_env_config",
+    "SHIELDED_BASELINES",
     "evaluate_baseline",
     "run_baselines",
     "tune_gap_acceptance",
@@ -170,6 +174,18 @@ def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int
     raise ValueError(f"baseline {name!r} unknown; expected one of {', '.join(SUMO_BASELINES + CARTPOLE_BASELINES)}")
 
 
+#: the baselines ``der table3 --shield`` / ``der baselines --safety`` also run behind the shield (as ``<name>+shield``)
+SHIELDED_BASELINES = ("immediate", "random", "gap_acceptance")
+_SHIELD = "+shield"
+
+
+def shielded_env_config(env_cfg: EnvConfig, kind: str, mode: str | None = None) -> EnvConfig:
+    """A copy of ``env_cfg`` with the safety shield ``kind`` (and ``mode``) on."""
+    out = copy.deepcopy(env_cfg)
+    out.safety = dataclasses.replace(out.safety, kind=kind, **({"mode": mode} if mode else {}))
+    return validate(out, source="safety")
+
+
 def baseline_env_config(env_cfg: EnvConfig, name: str) -> EnvConfig:
     """The env config a baseline runs on (``sumo``: the ego's laneChangeMode at SUMO's default)."""
     if name != "sumo":
@@ -199,6 +215,7 @@ def evaluate_baseline(
     n_streams = math.ceil(episodes / episodes_per_seed)
     seeds = evaluation_seeds(n_streams, seed_base)
     is_sumo = _network(env_cfg) is not None
+    name = name.removesuffix(_SHIELD)  # a shielded row: the same rule, the shield is in env_cfg.safety
     envs = [make_env_from_config(baseline_env_config(env_cfg, name), seed_base + i)
             for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
     try:
@@ -232,9 +249,12 @@ class BaselineJob:
         return EvalResult.load(path)
 
     def meta(self) -> dict[str, Any]:
-        return {"name": self.name, "env": self.env_cfg.id, "kwargs": self.env_cfg.kwargs, "episodes": self.episodes,
-                "episodes_per_seed": self.episodes_per_seed, "seed_base": self.seed_base,
-                "gap": None if self.gap is None else self.gap.__dict__}  # fmt: skip
+        out = {"name": self.name, "env": self.env_cfg.id, "kwargs": self.env_cfg.kwargs, "episodes": self.episodes,
+               "episodes_per_seed": self.episodes_per_seed, "seed_base": self.seed_base,
+               "gap": None if self.gap is None else self.gap.__dict__}  # fmt: skip
+        if self.env_cfg.safety.enabled:  # (absent without a shield: earlier caches stay valid)
+            out["safety"] = to_dict(self.env_cfg.safety)
+        return out
 
 
 def _run_job(job: BaselineJob) -> dict[str, Any]:
@@ -309,15 +329,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="tuned thresholds (config/baselines.yaml)")
     parser.add_argument("--out", default="runs/baselines", help="folder of the cached evaluations")
     parser.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
-    parser.add_argument("--only", action="append", default=None, metavar="NAME",
-                        help="run only this baseline (repeatable; default: all of the environment's)")
+    parser.add_argument("--only", action="extend", nargs="+", default=None, metavar="NAME",
+                        help="run only these baselines (e.g. immediate gap_acceptance; repeatable; default: all of the env's)")
     parser.add_argument("--tuning-seeds", action="store_true",
                         help="evaluate on the tuning seeds instead of the held-out evaluation seeds")
+    parser.add_argument("--safety", choices=SAFETY_KINDS, default="none",
+                        help="also run immediate, random and gap acceptance behind this shield (rows '<name>+shield')")
+    parser.add_argument("--safety-mode", dest="safety_mode", choices=SAFETY_MODES, default=None,
+                        help="replace or mask for the shielded rows (default: the config's env.safety.mode)")
 
 
 def run(args: argparse.Namespace) -> int:
-    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Missed | Mean return |",
-             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Missed | Mean return "
+             "| Interventions / episode |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for path in args.config:
         cfg = load_experiment_config(path)
         env_cfg, per_seed = cfg.env, cfg.train.eval_episodes_per_seed
@@ -347,11 +371,17 @@ def run(args: argparse.Namespace) -> int:
         jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, base, gap if name == "gap_acceptance" else None,
                             str(Path(args.out) / sub / (net or env_cfg.id) / name))
                 for name in names if not args.only or name in args.only]  # fmt: skip
+        if args.safety != "none" and net is not None:
+            env_s = shielded_env_config(env_cfg, args.safety, args.safety_mode)
+            jobs += [BaselineJob(env_s, name + _SHIELD, args.episodes, per_seed, base,
+                                 gap if name == "gap_acceptance" else None, str(Path(args.out) / sub / net / (name + _SHIELD)))
+                     for name in SHIELDED_BASELINES if not args.only or name in args.only]  # fmt: skip
         results = run_baselines(jobs, args.jobs)
         for job in jobs:
             r = results[job.out_dir]
             lines.append(f"| {env_cfg.id} | {job.name} | {r.n} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
-                         f"| {r.time_limit_rate:.3f} | {r.rate('missed'):.3f} | {r.mean_return:.2f} |")  # fmt: skip
+                         f"| {r.time_limit_rate:.3f} | {r.rate('missed'):.3f} | {r.mean_return:.2f} "
+                         f"| {r.mean_interventions:.2f} |")  # fmt: skip
     if not args.tune:
         print("\n".join(lines))
     return 0

@@ -45,6 +45,8 @@ __all__ = [
     "Method",
     "PAPER_METHODS",
     "methods_by_name",
+    "shielded_method",
+    "SHIELD_SUFFIX",
     "RunSpec",
     "RunResult",
     "plan_runs",
@@ -74,6 +76,18 @@ PAPER_METHODS: tuple[Method, ...] = (
     Method("der0.9", "λ = 0.9", (("replay.kind", "der"), ("replay.lam", 0.9))),
     Method("per", "PER", (("replay.kind", "per"),)),
 )
+
+
+#: suffix of a method run behind the safety shield (``dqn+shield``; docs/safety.md)
+SHIELD_SUFFIX = "+shield"
+
+
+def shielded_method(method: Method, kind: str, mode: str | None = None) -> Method:
+    """``method`` behind the shield ``kind`` (env.safety): name ``<name>+shield``, same replay settings."""
+    overrides = (*method.overrides, ("env.safety.kind", kind))
+    if mode is not None:
+        overrides += (("env.safety.mode", mode),)
+    return Method(method.name + SHIELD_SUFFIX, f"{method.label} + shield", overrides)
 
 
 def methods_by_name(names: Iterable[str] | None) -> list[Method]:

@@ -49,15 +49,18 @@ from der_ros.experiments.aggregate import (
 from der_ros.experiments.backends.dispatch import add_backend_arguments, backend_from_args, run_specs
 from der_ros.experiments.baselines import (
     DEFAULT_PARAMS_FILE,
+    SHIELDED_BASELINES,
     BaselineJob,
     baseline_names,
     gap_params_tuned,
     load_gap_params,
     run_baselines,
+    shielded_env_config,
 )
 from der_ros.experiments.paired import PairedCounts, paired_counts
 from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
+    SHIELD_SUFFIX,
     RunResult,
     RunSpec,
     add_suite_arguments,
@@ -66,12 +69,14 @@ from der_ros.experiments.suite import (
     methods_by_name,
     plan_runs,
     report_interrupted,
+    shielded_method,
     suite_command,
     suite_overrides,
     suite_seeds,
 )
 from der_ros.experiments.suite_plots import plot_eval_curves
 from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
+from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import load_experiment_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, EvalResult
 
@@ -91,10 +96,14 @@ BASELINE_LABELS: dict[str, str] = {
     "random": "random",
     "gap_acceptance": "gap acceptance (tuned)",
     "sumo": "SUMO's own model (standing request)",
+    "immediate+shield": "immediate change + shield",
+    "random+shield": "random + shield",
+    "gap_acceptance+shield": "gap acceptance (tuned) + shield",
 }
 #: the comparisons of the significance section: (X, Y) -> P(X > Y)
 COMPARISONS = [(f"der{lam}", ref) for lam in ("0.1", "0.5", "0.9") for ref in ("dqn", "per")]
-SCORE_KEYS = ("eval_success", "eval_collision", "eval_time_limit", "eval_return", "train_total_reward")
+SCORE_KEYS = ("eval_success", "eval_collision", "eval_time_limit", "eval_return", "eval_episodes", "eval_interventions",
+              "train_total_reward")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -115,6 +124,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline-params", dest="baseline_params", default=None,
                         help="tuned gap-acceptance thresholds (default config/baselines.yaml)")  # fmt: skip
     parser.add_argument("--no-baselines", dest="baselines", action="store_false", help="skip the baseline rows")
+    parser.add_argument("--shield", "--safety", dest="shield", choices=SAFETY_KINDS, default="none",
+                        help="also run every method behind this safety shield (rows '<method>+shield', and the "
+                        "baselines 'immediate+shield', 'random+shield', 'gap_acceptance+shield'; docs/safety.md)")  # fmt: skip
+    parser.add_argument("--shield-mode", "--safety-mode", dest="shield_mode", choices=SAFETY_MODES, default=None,
+                        help="replace or mask for the shielded rows (default: the config's env.safety.mode)")  # fmt: skip
+    parser.add_argument("--shield-only", dest="shield_only", action="store_true",
+                        help="run only the shielded rows (the unshielded ones are reused when present)")  # fmt: skip
     add_backend_arguments(parser)
 
 
@@ -128,6 +144,7 @@ def score_run(run: RunResult) -> dict[str, float]:
         "eval_time_limit": ev.time_limit_rate if ev else nan,
         "eval_return": ev.mean_return if ev else nan,
         "eval_episodes": float(ev.n) if ev else 0.0,
+        "eval_interventions": ev.mean_interventions if ev else nan,
         "train_total_reward": average_score(run.returns),
         "train_episodes": float(len(run.returns)),
     }
@@ -135,7 +152,8 @@ def score_run(run: RunResult) -> dict[str, float]:
 
 def _baseline_scores(res: EvalResult) -> dict[str, float]:
     return {"eval_success": res.success_rate, "eval_collision": res.collision_rate,
-            "eval_time_limit": res.time_limit_rate, "eval_return": res.mean_return, "episodes": float(res.n)}  # fmt: skip
+            "eval_time_limit": res.time_limit_rate, "eval_return": res.mean_return, "episodes": float(res.n),
+            "eval_episodes": float(res.n), "eval_interventions": res.mean_interventions}  # fmt: skip
 
 
 def _versions() -> dict[str, str]:
@@ -191,8 +209,9 @@ def write_table3(
         lines += [
             f"## {NETWORKS.get(net, net)}",
             "",
-            "| Method | Success | Caused collision | Time limit | Return | Total reward (training, paper's metric) | Total reward (paper) |",
-            "|---|---|---|---|---|---|---|",
+            "| Method | Success | Caused collision | Time limit | Return | Interventions / episode "
+            "| Total reward (training, paper's metric) | Total reward (paper) |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for name, per in by_method.items():
             run_seeds = [r.spec.seed for r in results[net][name]]
@@ -202,7 +221,8 @@ def write_table3(
             lines.append(
                 f"| {labels[name]} (n={len(per)}) | {_cell(iqm_interval(col['eval_success']))} "
                 f"| {_cell(iqm_interval(col['eval_collision']))} | {_cell(iqm_interval(col['eval_time_limit']))} "
-                f"| {_cell(iqm_interval(col['eval_return']), 1)} | {_mean_pm(col['train_total_reward'])} | {paper:.2f} |"
+                f"| {_cell(iqm_interval(col['eval_return']), 1)} | {_mean_pm(col['eval_interventions'])} "
+                f"| {_mean_pm(col['train_total_reward'])} | {paper:.2f} |"
             )
             for r, s in zip(results[net][name], per):
                 per_seed.append(
@@ -215,7 +235,8 @@ def write_table3(
             b = _baseline_scores(res)
             payload[net][bname] = b
             lines.append(f"| *baseline:* {b_names[bname]} | {b['eval_success']:.3f} "
-                         f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} | — | — |")  # fmt: skip
+                         f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} "
+                         f"| {b['eval_interventions']:.2f} | — | — |")  # fmt: skip
         lines += ["", "Mean over seeds [95% CI] of the same evaluation (the IQM above is the headline):", "",
                   "| Method | Success | Caused collision | Return |", "|---|---|---|---|"]  # fmt: skip
         for name in by_method:
@@ -365,6 +386,11 @@ def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dic
 
 def run(args: argparse.Namespace) -> int:
     methods = methods_by_name(args.methods)
+    if args.shield != "none":  # the shielded twins (Table 3 gains rows; the paper's rows stay)
+        shielded = [shielded_method(m, args.shield, args.shield_mode) for m in methods]
+        methods = shielded if args.shield_only else methods + shielded
+    elif args.shield_only:
+        raise SystemExit("der table3: --shield-only needs --shield rss or --shield sumo")
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     configs = {"ring": args.config, "urban": args.urban_config, "exit": args.exit_config}
@@ -399,6 +425,12 @@ def run(args: argparse.Namespace) -> int:
                 jobs.append((net, BaselineJob(cfg.env, name, episodes, cfg.train.eval_episodes_per_seed,
                                               cfg.train.eval_seed_base, gap if name == "gap_acceptance" else None,
                                               str(Path(args.out) / net / "baselines" / name))))  # fmt: skip
+            if args.shield != "none":
+                env_s = shielded_env_config(cfg.env, args.shield, args.shield_mode)
+                for name in SHIELDED_BASELINES:
+                    jobs.append((net, BaselineJob(env_s, name + SHIELD_SUFFIX, episodes, cfg.train.eval_episodes_per_seed,
+                                                  cfg.train.eval_seed_base, gap if name == "gap_acceptance" else None,
+                                                  str(Path(args.out) / net / "baselines" / (name + SHIELD_SUFFIX)))))  # fmt: skip
         evaluated = run_baselines([j for _, j in jobs], args.jobs)
         for net, job in jobs:
             baselines.setdefault(net, {})[job.name] = evaluated[job.out_dir]
@@ -415,6 +447,9 @@ def run(args: argparse.Namespace) -> int:
         extra += ["--scenario-config", item]
     if args.urban_seeds is not None:
         extra += ["--urban-seeds", str(args.urban_seeds)]
+    if args.shield != "none":
+        extra += ["--shield", args.shield] + (["--shield-mode", args.shield_mode] if args.shield_mode else [])
+        extra += ["--shield-only"] if args.shield_only else []
     md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
                           steps, total_training_time(results), b_labels)  # fmt: skip
     figures = []

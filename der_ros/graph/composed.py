@@ -1,4 +1,4 @@
-"""All three nodes in one process on one single-threaded executor (``der graph --composed``).
+"""All the nodes (three, four with the safety node) in one process on one single-threaded executor (``der graph --composed``).
 
 Same nodes, parameters (``--ros-args --params-file``, sections by node name) and topics as the
 multi-process graph; messages still go through the middleware, but there are no context
@@ -20,7 +20,9 @@ from rclpy.signals import SignalHandlerOptions
 
 from der_ros.nodes.agent_node import AgentNode
 from der_ros.nodes.bridge_node import BridgeNode
+from der_ros.nodes.node_configs import SAFETY_FLAG
 from der_ros.nodes.recorder_node import RecorderNode
+from der_ros.nodes.safety_node import SafetyNode
 from der_ros.nodes.spin import install_stop_handlers
 
 __all__ = ["main"]
@@ -30,11 +32,14 @@ log = logging.getLogger("der_graph_composed")
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s")
-    rclpy.init(args=list(sys.argv if argv is None else argv), signal_handler_options=SignalHandlerOptions.NO)
+    args = list(sys.argv if argv is None else argv)
+    shielded = SAFETY_FLAG in args  # der graph --safety: the safety node between agent and bridge
+    rclpy.init(args=[a for a in args if a != SAFETY_FLAG], signal_handler_options=SignalHandlerOptions.NO)
     stop = install_stop_handlers()
     nodes: list[Any] = []
+    classes = (RecorderNode, AgentNode, SafetyNode, BridgeNode) if shielded else (RecorderNode, AgentNode, BridgeNode)
     try:
-        for cls in (RecorderNode, AgentNode, BridgeNode):  # recorder first: subscribed before data flows
+        for cls in classes:  # recorder first: subscribed before data flows
             nodes.append(cls())
     except (ValueError, RuntimeError) as exc:
         log.error("could not start: %s", exc)
@@ -43,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
         return 1
-    recorder, agent, bridge = nodes
+    recorder, agent, bridge = nodes[0], nodes[1], nodes[-1]
+    safety = nodes[2] if shielded else None
     executor = SingleThreadedExecutor()
     for node in nodes:
         executor.add_node(node)
@@ -62,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         agent.on_shutdown(reason)
         executor.remove_node(agent)
         _drain(executor, 0.3)
+        if safety is not None:
+            safety.on_shutdown(reason)
+            executor.remove_node(safety)
         recorder.on_shutdown(reason)
         executor.shutdown(timeout_sec=1.0)
         for node in nodes:

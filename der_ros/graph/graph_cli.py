@@ -27,11 +27,12 @@ from pathlib import Path
 import yaml
 
 from der_ros.configuration import ConfigError
+from der_ros.contract import AGENT_COMMAND, COMMAND
 from der_ros.graph.greedy_episode import greedy_episode_gif
 from der_ros.graph.preflight import check_graph_files, writable_problem
 from der_ros.graph.run_progress import Progress
-from der_ros.graph.run_summary import bridge_summary, report, snapshot_from_bag, unanswered_run
-from der_ros.graph.snapshot_evaluation import GraphEvaluator
+from der_ros.graph.run_summary import bridge_summary, report, safety_summary, snapshot_from_bag, unanswered_run
+from der_ros.graph.snapshot_evaluation import GraphEvaluator, graph_safety_config
 from der_ros.graph.supervisor import (
     ChildFailed,
     ProcessSpec,
@@ -41,6 +42,7 @@ from der_ros.graph.supervisor import (
     ros_environment,
 )
 from der_ros.interrupts import interrupts_raise
+from der_ros.nodes.node_configs import SAFETY_FLAG
 from der_ros.nodes.params import build_graph_params, load_params_file, parse_overrides
 
 __all__ = ["add_arguments", "run", "node_specs", "default_params_file", "NODES"]
@@ -51,12 +53,18 @@ log = logging.getLogger("der.graph")
 NODES: dict[str, tuple[str, str]] = {
     "recorder_node": ("der_ros.nodes.recorder_node", r"recorder ready"),
     "agent_node": ("der_ros.nodes.agent_node", r"agent ready"),
+    "safety_node": ("der_ros.nodes.safety_node", r"safety ready"),
     "bridge_node": ("der_ros.nodes.bridge_node", r"bridge ready"),
 }
-START_ORDER = ("recorder_node", "agent_node", "bridge_node")
+START_ORDER = ("recorder_node", "agent_node", "safety_node", "bridge_node")
 #: outputs der graph places in the run directory (unless -p sets them)
 RUN_DIR_OUTPUTS = {("recorder_node", "output"), ("agent_node", "checkpoint_out"), ("agent_node", "policy_dir")}
-STOP_ORDER = ("bridge_node", "agent_node", "recorder_node")
+STOP_ORDER = ("bridge_node", "agent_node", "safety_node", "recorder_node")
+#: ``der graph --safety`` choices; the default is the shield on (docs/safety.md, "Why the graph runs it by default")
+GRAPH_SAFETY = ("rss", "none")
+DEFAULT_SAFETY = "rss"
+#: the agent's command goes to the safety node instead of the bridge (a ROS remapping of the agent node only)
+AGENT_REMAP = f"agent_node:{COMMAND}:={AGENT_COMMAND}"
 
 
 def default_params_file() -> Path | None:
@@ -99,26 +107,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG plots nor the greedy episode GIF")
     parser.add_argument("--no-gif", action="store_true",
                         help="do not record and render the greedy episode GIF at the end (plots/greedy_episode.gif)")
+    parser.add_argument("--safety", default=DEFAULT_SAFETY, metavar="{rss,sumo,none}",
+                        help="the shield between agent and bridge (a safety_node; docs/safety.md): rss (default) or "
+                        "none; sumo is refused here, SUMO's verdict needs the simulation only the bridge holds (use "
+                        "der train --safety sumo in process)")
     parser.add_argument("--grace", type=float, default=20.0,
                         help="seconds each node gets to stop after SIGINT before SIGTERM/SIGKILL (default 20)")
 
 
-def node_specs(params_path: Path, env: dict[str, str], composed: bool) -> list[ProcessSpec]:
-    """The processes of the graph, in start order."""
+def node_specs(params_path: Path, env: dict[str, str], composed: bool, safety: str = "none") -> list[ProcessSpec]:
+    """The processes of the graph, in start order (the safety node only with ``safety`` other than none)."""
     ros_args = ["--ros-args", "--params-file", str(params_path)]
+    shielded = safety != "none"
+    if shielded:
+        ros_args += ["-r", AGENT_REMAP]
     if composed:
-        return [ProcessSpec("graph", [sys.executable, "-m", "der_ros.graph.composed", *ros_args], env,
+        flag = [SAFETY_FLAG] if shielded else []
+        return [ProcessSpec("graph", [sys.executable, "-m", "der_ros.graph.composed", *flag, *ros_args], env,
                             ready_pattern=r"composed graph ready", ready_timeout=120, finishes_run=True)]
     return [
         ProcessSpec(name, [sys.executable, "-m", NODES[name][0], *ros_args], env, ready_pattern=NODES[name][1],
                     ready_timeout=120, finishes_run=name == "bridge_node")
-        for name in START_ORDER
+        for name in START_ORDER if shielded or name != "safety_node"
     ]
+
+
+def check_safety(value: str) -> str:
+    """``--safety``'s value, or a one-line ConfigError (before anything is written or started)."""
+    if value == "sumo":
+        raise ConfigError("--safety = 'sumo': not in the graph (SUMO's verdict needs the simulation, which only the "
+                          "bridge holds); use rss or none, or der train/table3 --safety sumo in process")  # fmt: skip
+    if value not in GRAPH_SAFETY:
+        raise ConfigError(f"--safety = {value!r}, expected one of rss, none (sumo: in process only)")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
     """One ``der graph`` run. Expects SIGINT and SIGTERM to raise KeyboardInterrupt (``der`` and
     :func:`main` install that: a background start would otherwise inherit SIGINT ignored)."""
+    safety = check_safety(args.safety)
     if args.steps < 1:  # a bad input: exit 2 like every other (ConfigError), before anything starts
         raise ConfigError(f"--steps = {args.steps}, expected >= 1")
     for flag, value in (("--eval-interval", args.eval_interval), ("--eval-episodes", args.eval_episodes),
@@ -133,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     params = build_graph_params(  # checks every node's parameters (one line per error) before any output
         load_params_file(params_in), steps=args.steps, scenario=args.scenario, run_dir=run_dir,
         free_run=args.free_run, replay=args.replay, lam=args.lam, seed=args.seed, overrides=args.param,
-        base_name=str(params_in) if params_in is not None else "node defaults")
+        base_name=str(params_in) if params_in is not None else "node defaults", safety=safety)
     evaluating = bool(args.eval_interval and args.eval_episodes) or bool(args.final_eval_episodes)
     if args.eval_interval and args.eval_episodes:
         params["agent_node"]["ros__parameters"]["policy_every"] = int(args.eval_interval)
@@ -162,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     monitor = None
     progress = None
     evaluator = GraphEvaluator(run_dir, params, run_dir / "policies", args.eval_episodes if args.eval_interval else 0,
-                               args.final_eval_episodes) if evaluating else None  # fmt: skip
+                               args.final_eval_episodes, shielded=safety != "none") if evaluating else None  # fmt: skip
     outcome: RunOutcome | None = None
     t0 = time.monotonic()
     try:
@@ -170,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
 
         monitor = GraphMonitor(lease.domain_id)
         try:
-            sup.start_all(node_specs(params_path, env, args.composed))
+            sup.start_all(node_specs(params_path, env, args.composed, safety))
         except ChildFailed as exc:
             outcome = sup.finish(RunOutcome(False, f"{exc.name} failed to start", failed=exc.name))
         except KeyboardInterrupt:
@@ -202,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
     wall = time.monotonic() - t0
     snap = snapshot_from_bag(run_dir / "bag", snap)
     bridge = bridge_summary(run_dir / "logs")
+    shield = safety_summary(run_dir / "logs") if safety != "none" else None
     outcome = unanswered_run(outcome, bridge)  # every node exited 0 but the agent answered nothing: a failure
     if snap is not None and "sim_steps" in bridge:
         snap.steps = int(bridge["sim_steps"])  # the bridge's own count of simulated decision steps
@@ -220,8 +248,9 @@ def run(args: argparse.Namespace) -> int:
     if outcome.ok and not (args.no_plots or args.no_gif) and (run_dir / "agent.pt").is_file():
         print("der graph: recording and rendering one greedy episode of the trained agent ...", file=sys.stderr,
               flush=True)  # fmt: skip
-        greedy = greedy_episode_gif(run_dir, run_dir / "agent.pt", params)
-    return report(outcome, snap, run_dir, wall, args, params, bridge, final, greedy)
+        greedy = greedy_episode_gif(run_dir, run_dir / "agent.pt", params,
+                                    shield=graph_safety_config(params) if safety != "none" else None)
+    return report(outcome, snap, run_dir, wall, args, params, bridge, final, greedy, shield)
 
 
 def main(argv: list[str] | None = None) -> int:

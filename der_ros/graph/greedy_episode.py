@@ -28,6 +28,8 @@ from der_ros.agent.config import DQNConfig
 from der_ros.graph.snapshot_evaluation import observation_shape, scenario_env_config
 from der_ros.offline.episode_recording import record_episode
 from der_ros.offline.render import render_bag
+from der_ros.safety.checker import RssChecker
+from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import EnvConfig
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
@@ -56,7 +58,7 @@ class GreedyEpisode:
 
 
 def _record_and_render(checkpoint: str, env_cfg: EnvConfig, network: str, hidden: list[int], n_actions: int,
-                       seed: int, bag: str, gif: str) -> dict[str, Any]:  # fmt: skip
+                       seed: int, bag: str, gif: str, shield: SafetyConfig | None = None) -> dict[str, Any]:  # fmt: skip
     """In the spawned process: load the Q-network, run the episode into ``bag``, render ``gif``."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
@@ -72,7 +74,8 @@ def _record_and_render(checkpoint: str, env_cfg: EnvConfig, network: str, hidden
     policy = GreedyQPolicy(net, np.dtype(np.float32))
     env = make_env_from_config(env_cfg, seed)
     try:
-        rec = record_episode(env.unwrapped, lambda obs: int(policy(obs[None], [{}])[0]), bag, seed=seed)
+        mask = RssChecker(shield).mask if shield is not None and shield.kind == "rss" else None  # as the safety node
+        rec = record_episode(env.unwrapped, lambda obs: int(policy(obs[None], [{}])[0]), bag, seed=seed, shield=mask)
     finally:
         env.close()
     render_bag(bag, gif)
@@ -91,9 +94,10 @@ def watchable_env_config(env_cfg: EnvConfig) -> EnvConfig:
 
 
 def greedy_episode_gif(run_dir: Path, checkpoint: Path, params: dict[str, Any],
-                       timeout: float = 900.0) -> GreedyEpisode | None:  # fmt: skip
+                       timeout: float = 900.0, shield: SafetyConfig | None = None) -> GreedyEpisode | None:  # fmt: skip
     """Record and render the greedy episode of ``checkpoint`` (a ``der graph`` run's ``agent.pt``)
-    with the run's ``params``; None (and a warning) if anything fails."""
+    with the run's ``params``; None (and a warning) if anything fails. ``shield``: the episode runs
+    behind it as behind the graph's safety node (vetoed steps marked in the film)."""
     bridge = params["bridge_node"]["ros__parameters"]
     agent = params["agent_node"]["ros__parameters"]
     defaults = DQNConfig()
@@ -106,7 +110,7 @@ def greedy_episode_gif(run_dir: Path, checkpoint: Path, params: dict[str, Any],
                 _record_and_render, str(checkpoint), watchable_env_config(scenario_env_config(bridge)),
                 str(agent.get("agent.network", defaults.network)),
                 [int(h) for h in agent.get("agent.hidden_sizes", defaults.hidden_sizes)],
-                int(agent.get("n_actions", 3)), EVAL_SEED_BASE, str(bag), str(gif),
+                int(agent.get("n_actions", 3)), EVAL_SEED_BASE, str(bag), str(gif), shield,
             )  # fmt: skip
             out = job.result(timeout=timeout)
     except Exception as exc:  # noqa: BLE001 - the GIF must not turn a finished run into a failure

@@ -86,6 +86,20 @@ def bridge_summary(log_dir: Path) -> dict[str, float]:
     return {}
 
 
+def safety_summary(log_dir: Path) -> dict[str, float]:
+    """The JSON summary line the safety node logs when it stops ({} if absent)."""
+    for name in ("safety_node.log", "graph.log"):
+        path = log_dir / name
+        if path.is_file():
+            found = re.findall(r"safety summary: (\{.*\})", path.read_text(errors="replace"))
+            if found:
+                try:
+                    return dict(json.loads(found[-1]))
+                except json.JSONDecodeError:
+                    return {}
+    return {}
+
+
 def unanswered_run(outcome: RunOutcome, bridge: dict[str, float]) -> RunOutcome:
     """A run whose nodes all exited 0 but whose agent answered none of the bridge's steps is a failure.
 
@@ -148,7 +162,7 @@ def _replay_text(params: dict[str, Any]) -> str:
 
 def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wall: float, args: argparse.Namespace,
            params: dict[str, Any], bridge: dict[str, float], evaluation: EvalResult | None = None,
-           greedy: GreedyEpisode | None = None) -> int:
+           greedy: GreedyEpisode | None = None, safety: dict[str, float] | None = None) -> int:
     """Write ``summary.json`` and the plots, print the table and the paths; returns the exit code
     (0 finished, 130 interrupted, 1 failed)."""
     bag = run_dir / "bag"
@@ -168,6 +182,7 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
         "lane_changes": snap.lane_changes if snap else 0,
         "metrics": snap.metrics if snap else {},
         "bridge": bridge,
+        "safety": safety,
         "bag": str(bag) if bag.exists() else None,
         "checkpoint": str(ckpt) if ckpt.exists() else None,
         "plots": [str(p) for p in plots],
@@ -195,6 +210,9 @@ def report(outcome: RunOutcome, snap: ProgressSnapshot | None, run_dir: Path, wa
              " / ".join(str(snap.outcomes[e]) for e in (EPISODE_SUCCESS, EPISODE_COLLISION, EPISODE_TIME_LIMIT))),
             ("lane changes", str(snap.lane_changes)),
         ]
+        if safety is not None:  # der graph --safety: the safety node's count (docs/safety.md)
+            rows.append(("safety interventions", f"{int(safety.get('interventions', 0))} of "
+                         f"{int(safety.get('commands', 0))} commands vetoed (keep lane instead)" if safety else "-"))
         for name in ("losses/td_loss", "replay/h2_fraction", "charts/epsilon"):
             if name in snap.metrics:
                 rows.append((name, f"{snap.metrics[name]:.4g}"))

@@ -17,6 +17,7 @@ from typing import Any
 
 from der_ros.agent.config import DQNConfig
 from der_ros.configuration import from_dict
+from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import EnvConfig
 from der_ros.train.evaluation import (
     EVAL_SEED_BASE,
@@ -66,6 +67,12 @@ def scenario_env_config(bridge_params: dict[str, Any]) -> EnvConfig:
     return EnvConfig(id=NETWORK_ENV_IDS[network], kwargs={"scenario": scenario})
 
 
+def graph_safety_config(params: dict[str, Any]) -> SafetyConfig:
+    """The safety node's shield (its ``safety.*`` parameters), in replace mode as the node applies it."""
+    shield = _nested(params["safety_node"]["ros__parameters"], "safety")
+    return from_dict(SafetyConfig, {**shield, "mode": "replace"}, source="safety_node")
+
+
 def observation_shape(env_cfg: EnvConfig) -> tuple[int]:
     """The observation shape of a lane-change env config (its ``scenario.observation`` fields decide
     whether the required-deceleration block is in)."""
@@ -78,10 +85,12 @@ class GraphEvaluator:
     """Evaluates a running graph's policy snapshots and, at the end, its final checkpoint."""
 
     def __init__(self, run_dir: Path, params: dict[str, Any], policy_dir: Path, episodes: int,
-                 final_episodes: int) -> None:  # fmt: skip
+                 final_episodes: int, shielded: bool = False) -> None:  # fmt: skip
         bridge = params["bridge_node"]["ros__parameters"]
         agent = params["agent_node"]["ros__parameters"]
         self.env_cfg = scenario_env_config(bridge)
+        if shielded:  # evaluated behind the same shield as the graph's safety node (replace mode)
+            self.env_cfg.safety = graph_safety_config(params)
         network = str(bridge.get("scenario.network", "ring"))
         self.per_seed = _EPISODES_PER_SEED.get(network, 1)
         self.episodes, self.final_episodes = int(episodes), int(final_episodes)

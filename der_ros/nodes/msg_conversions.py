@@ -25,6 +25,7 @@ from der_ros.contract import (
     EPISODE_COLLISION,
     EPISODE_STATUS,
     METRICS_STATUS,
+    SAFETY_STATUS,
     clock_cdr,
     command_cdr,
     format_value,
@@ -43,6 +44,7 @@ __all__ = [
     "make_command",
     "make_episode_event",
     "make_diagnostics",
+    "make_safety_record",
     "metrics_to_diagnostics",
 ]
 
@@ -144,4 +146,15 @@ def make_diagnostics(
         level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK, name=name, message=message,
         hardware_id=hardware_id, values=[KeyValue(key=k, value=repr(float(v))) for k, v in values.items()],
     )
+    return DiagnosticArray(header=_header(stamp_ns, ""), status=[status])
+
+
+# -- safety records -------------------------------------------------------------------------------
+def make_safety_record(stamp_ns: int, verdict: str, proposed: int, applied: int, interventions: int) -> DiagnosticArray:
+    """One ``safety/interventions`` record: message = verdict, values proposed / applied / interventions so far
+    (:func:`der_ros.contract.parse_safety_record` reads it back); WARN level when the command was changed."""
+    values = [KeyValue(key="proposed", value=str(int(proposed))), KeyValue(key="applied", value=str(int(applied))),
+              KeyValue(key="interventions", value=str(int(interventions)))]  # fmt: skip
+    level = DiagnosticStatus.WARN if applied != proposed else DiagnosticStatus.OK
+    status = DiagnosticStatus(level=level, name=SAFETY_STATUS, message=verdict, values=values)
     return DiagnosticArray(header=_header(stamp_ns, ""), status=[status])

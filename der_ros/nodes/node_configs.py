@@ -17,10 +17,11 @@ from der_ros.agent.config import DQNConfig
 from der_ros.bag.recorder_config import RecorderConfig
 from der_ros.configuration import param
 from der_ros.replay.config import ReplayConfig
+from der_ros.safety.config import SafetyConfig
 from sumo_bridge.observation import ObservationConfig
 from sumo_bridge.scenario import ScenarioConfig
 
-__all__ = ["BridgeNodeConfig", "AgentNodeConfig", "AGENT_MUTABLE", "NODE_SECTIONS", "parameter_sections"]
+__all__ = ["BridgeNodeConfig", "AgentNodeConfig", "SafetyNodeConfig", "SAFETY_FLAG", "AGENT_MUTABLE", "NODE_SECTIONS", "parameter_sections"]
 
 
 @dataclass
@@ -91,6 +92,23 @@ class AgentNodeConfig:
         "numba kernels, torch autograd) does not stall the first real steps past the bridge's command timeout")
 
 
+@dataclass
+class SafetyNodeConfig:
+    """Parameters of the safety node itself (top-level names); the shield's own are ``safety.*``."""
+
+    max_state_age: float = param(
+        1.0, "seconds (wall clock) a state may be old when the command answering it arrives; older: keep lane",
+        low=0.0, low_inclusive=False)
+    max_states: int = param(16, "states kept by stamp while their command is awaited", low=1, high=10_000)
+    max_command_wait: float = param(
+        0.25, "seconds (wall clock) a lane change may wait for its state (a command can overtake it); then keep lane",
+        low=0.0, low_inclusive=False)
+    diagnostics_every: int = param(200, "publish safety/diagnostics every this many commands (and at exit)", low=1)
+
+
+#: argument of ``python -m der_ros.graph.composed`` that adds the safety node to the composed graph
+SAFETY_FLAG = "--with-safety"
+
 #: agent parameters that may change while the node runs (all others are read-only)
 AGENT_MUTABLE = frozenset({"replay.lam", "agent.lr", "checkpoint_every", "metrics_every", "checkpoint_out"})
 
@@ -100,6 +118,8 @@ NODE_SECTIONS: dict[str, Callable[[], dict[str, Any]]] = {
     "agent_node": lambda: {"": AgentNodeConfig(), "agent": DQNConfig(), "replay": ReplayConfig(),
                            "observation": ObservationConfig()},
     "bridge_node": lambda: {"": BridgeNodeConfig(), "scenario": ScenarioConfig()},
+    # the shield between agent and bridge (der graph --safety; docs/safety.md): RSS by default
+    "safety_node": lambda: {"": SafetyNodeConfig(), "safety": SafetyConfig(kind="rss")},
 }
 
 

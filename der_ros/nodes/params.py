@@ -327,6 +327,7 @@ def build_graph_params(
     seed: int | None = None,
     overrides: Iterable[str] = (),
     base_name: str = "params file",
+    safety: str = "none",
 ) -> dict[str, Any]:
     """The params file of one ``der graph`` run: ``base`` plus the run's choices plus ``-p`` overrides.
 
@@ -383,6 +384,8 @@ def build_graph_params(
         put("bridge_node", "scenario.seed", seed, "--seed")
     put("agent_node", "checkpoint_out", str(run_dir / "agent.pt"), "--run-dir")
     put("recorder_node", "output", str(run_dir / "bag"), "--run-dir")
+    if safety != "none":
+        put("safety_node", "safety.kind", safety, "--safety")
     extra = parse_overrides(overrides)
     for node, values in extra.items():
         for name, value in values.items():

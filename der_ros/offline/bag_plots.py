@@ -4,6 +4,7 @@ Figures (each written only when the bags hold the data for it):
 
 * ``returns.png`` -- return per episode (dots) with a moving average (line);
 * ``outcomes.png`` -- success / collision / time-limit rates per bag (grouped bars);
+* ``interventions.png`` -- commands the safety node vetoed per episode (bags with ``safety/interventions``);
 * ``speed.png`` -- ego speed over episode time for the last few episodes of each bag;
 * ``der_replay.png`` -- DER statistics from ``agent/metrics``: ``replay/h2_fraction`` and
   the H2 weight statistics (``replay/h2_weight_*``), over time;
@@ -102,6 +103,24 @@ def plot_scans(scans: Sequence[BagScan], labels: Sequence[str], out_dir: str | P
         ax.legend()
         fig.tight_layout()
         save(fig, "outcomes.png")
+
+    if any(s.vetoes for s in scans):  # a safety node was recorded: its vetoes per episode
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for i, ((_s, label), eps) in enumerate(zip(pairs, finished)):
+            if not eps:
+                continue
+            c = colors[i % len(colors)]
+            x = np.arange(1, len(eps) + 1)
+            n = np.array([e.interventions for e in eps], dtype=np.float64)
+            ax.plot(x, n, ".", color=c, alpha=0.35)
+            ax.plot(x, moving_average(n, window), "-", color=c, label=f"{label} ({window}-episode mean)")
+        ax.set_xlabel("episode")
+        ax.set_ylabel("vetoed commands")
+        ax.set_title("Safety interventions per episode (lane changes replaced by keep lane)")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        save(fig, "interventions.png")
 
     if any(e.speed.size for s in scans for e in s.episodes):
         fig, ax = plt.subplots(figsize=(8, 4.5))

@@ -25,13 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.bag.writer import BagWriter
+from der_ros.bag.writer import BagWriter, jazzy_typestore
 from der_ros.contract import (
     COMMAND,
     EPISODE_COLLISION,
     EPISODE_START,
     EPISODE_TIME_LIMIT,
     REWARD,
+    SAFETY_EVENTS,
+    SAFETY_STATUS,
     SCENE_ROAD,
     SCENE_VEHICLES,
     STATE,
@@ -46,6 +48,7 @@ from der_ros.contract import (
     topic_spec,
     vehicle_markers_cdr,
 )
+from der_ros.safety.apply import replace_unsafe
 from sumo_bridge.observation import POINT_FIELDS, field_index
 
 __all__ = ["RecordedEpisode", "record_episode"]
@@ -53,6 +56,19 @@ __all__ = ["RecordedEpisode", "record_episode"]
 _NS = 1_000_000_000
 #: log-time offsets (ns) of one step's messages: the bridge's order, the agent's answer last
 _AT_REWARD, _AT_STATE, _AT_TF, _AT_SCENE, _AT_COMMAND, _AT_END = 1_000, 2_000, 2_500, 3_000, 4_000, 5_000
+
+
+def _safety_message(ns: int, verdict: str, proposed: int, applied: int, interventions: int) -> Any:
+    """``safety/interventions``: one record per command, as the safety node publishes it
+    (:func:`der_ros.contract.parse_safety_record` reads it back); WARN level when the command was changed."""
+    types = jazzy_typestore().types
+    values = [types["diagnostic_msgs/msg/KeyValue"](key=k, value=str(int(v)))
+              for k, v in (("proposed", proposed), ("applied", applied), ("interventions", interventions))]  # fmt: skip
+    status = types["diagnostic_msgs/msg/DiagnosticStatus"](level=1 if applied != proposed else 0, name=SAFETY_STATUS,
+                                                          message=verdict, hardware_id="", values=values)  # fmt: skip
+    sec, nanosec = divmod(int(ns), _NS)
+    header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="")
+    return types["diagnostic_msgs/msg/DiagnosticArray"](header=header, status=[status])
 
 
 @dataclass(frozen=True)
@@ -67,19 +83,24 @@ class RecordedEpisode:
 
 
 def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path, *, seed: int | None,
-                   episode: int = 0, frame_id: str = "map") -> RecordedEpisode:  # fmt: skip
+                   episode: int = 0, frame_id: str = "map",
+                   shield: Callable[[np.ndarray], np.ndarray] | None = None) -> RecordedEpisode:  # fmt: skip
     """Run one episode of ``env`` (a LaneChangeEnv, unwrapped) with ``act(observation) -> action``
     from ``reset(seed=seed)`` and write it to a new bag directory ``path``.
 
-    The env's scene is enabled here (position subscriptions from this reset on).
+    The env's scene is enabled here (position subscriptions from this reset on). ``shield`` (a mask
+    of the safe actions from the points, e.g. ``RssChecker.mask``): the command goes through it as
+    through the graph's safety node: an unsafe one becomes keep lane, and every command gets its
+    ``safety/interventions`` record.
     """
     env.enable_scene()
     step_ns = int(round(float(env.step_seconds) * _NS))
     writer = BagWriter(path, custom_data={"der_ros/recorded_by": "der_ros.offline.episode_recording"})
     try:
-        for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND):
+        for name in (SCENE_ROAD, REWARD, STATE, SCENE_VEHICLES, COMMAND) + ((SAFETY_EVENTS,) if shield else ()):
             writer.add_topic(name, topic_spec(name).msgtype)
         writer.add_topic(TF, TF_MSGTYPE, TF_QOS)
+        vetoes = 0
         obs, info = env.reset(seed=seed)
         t0 = time.time_ns()  # log time of sim time 0 (module docstring)
         writer.write(SCENE_ROAD, t0, road_markers_cdr(env.lanes(), 0, frame_id))
@@ -104,6 +125,12 @@ def record_episode(env: Any, act: Callable[[np.ndarray], int], path: str | Path,
                                     lane_changes=lane_changes, mean_speed=speed_sum / max(k, 1), stamp_ns=t)  # fmt: skip
                 return RecordedEpisode(Path(path), k, ret, str(event), lane_changes)
             action = int(act(obs))
+            if shield is not None:  # as the safety node: proposal in, the command or keep lane out
+                proposed = action
+                action, vetoed = replace_unsafe(proposed, shield(info["points"]))
+                vetoes += vetoed
+                writer.write_message(SAFETY_EVENTS, at + _AT_COMMAND, _safety_message(
+                    t, "unsafe" if vetoed else "pass", proposed, action, vetoes))  # fmt: skip
             writer.write(COMMAND, at + _AT_COMMAND, command_cdr(t, action, "der_ros.offline.episode_recording"))
             obs, r, terminated, truncated, info = env.step(action)
             reward, applied = float(r), action

@@ -37,6 +37,7 @@ from der_ros.contract import (
     EPISODE_START,
     METRICS,
     REWARD,
+    SAFETY_EVENTS,
     STATE,
     TOPICS,
     cloud_to_points,
@@ -45,6 +46,7 @@ from der_ros.contract import (
     header_ns,
     parse_episode_events,
     parse_reward,
+    parse_safety_record,
     point_field_names,
     topic_by_name,
 )
@@ -212,6 +214,8 @@ class EpisodeSummary:
     source: str  # "event" (the bridge's end event) or "steps" (computed from the recorded steps)
     speed_t: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # s since episode start
     speed: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # ego speed (m/s)
+    #: commands the safety node vetoed in this episode (``safety/interventions``; 0 without a safety node)
+    interventions: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -243,6 +247,8 @@ class BagScan:
     steps: int
     truncated: bool
     rates: dict[str, dict[int, int]] = field(default_factory=dict)  # topic -> {second since start: count}
+    #: stamps of the commands the safety node vetoed (``safety/interventions``; empty without one)
+    vetoes: list[int] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float:
@@ -293,7 +299,8 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
     times = [None, None]
     events: list[tuple[int, str, dict[str, Any]]] = []
     metric_lists: dict[str, tuple[array, array]] = {}
-    t_episode, t_metrics = roles.get(EPISODE), roles.get(METRICS)
+    t_episode, t_metrics, t_safety = roles.get(EPISODE), roles.get(METRICS), roles.get(SAFETY_EVENTS)
+    vetoes: list[int] = []
 
     rates: dict[str, dict[int, int]] = {}
 
@@ -314,6 +321,10 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
             times[1] = lt
         if topic == t_episode:
             events.extend(parse_episode_events(msg.decode()))
+        elif topic == t_safety:
+            rec = parse_safety_record(msg.decode())
+            if rec is not None and rec[3] != rec[2]:  # applied != proposed: a veto
+                vetoes.append(rec[0])
         elif topic == t_metrics:
             m = msg.decode()
             t = header_ns(m) / 1e9 if m.header.stamp.sec or m.header.stamp.nanosec else lt / 1e9
@@ -342,6 +353,10 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
         segments.append(cur)
 
     episodes = _merge(segments, sorted(events, key=lambda e: e[0]))
+    if vetoes:
+        stamps = np.sort(np.asarray(vetoes, dtype=np.int64))
+        for e in episodes:
+            e.interventions = int(np.searchsorted(stamps, e.end_ns, "right") - np.searchsorted(stamps, e.start_ns))
     metrics = {k: (np.asarray(ts, dtype=np.float64), np.asarray(vs, dtype=np.float64)) for k, (ts, vs) in metric_lists.items()}
     return BagScan(
         name=reader.name,
@@ -355,6 +370,7 @@ def scan_bag(reader: BagReader, namespace: str | None = None) -> BagScan:
         steps=n_steps,
         truncated=reader.truncated,
         rates=rates,
+        vetoes=vetoes,
     )
 
 

@@ -48,9 +48,11 @@ OUTLINE: RGB = (20, 20, 20)
 ROLE_RGB: dict[str, RGB] = {role: _rgb(c) for role, c in ROLE_COLOURS.items()}
 #: every colour a frame is drawn with, plus a ramp from the caption band to the text colour for the
 #: font's anti-aliased edges: the GIF's palette, so the drawn colours stay exact
+#: a command the safety node vetoed: the marker on the ego and the caption's veto text
+VETO: RGB = (255, 170, 0)
 PALETTE: list[RGB] = [BACKGROUND, ROAD, BAND, TEXT, OUTLINE, *ROLE_RGB.values()] + [
     tuple(int(round(b + (t - b) * k / 15)) for b, t in zip(BAND, TEXT)) for k in range(1, 15)  # type: ignore[misc]
-]
+] + [VETO]
 
 
 @dataclass(frozen=True)
@@ -192,6 +194,10 @@ def draw_frame(lanes: list[LaneLine], frame: Frame, view: View, opts: RenderOpti
         draw.polygon(_corners(v, view), fill=ROLE_RGB.get(v.role, ROLE_RGB[TRAFFIC_ROLE]), outline=OUTLINE)
     if ego is not None:
         draw.polygon(_corners(ego, view), fill=ROLE_RGB[EGO_ROLE], outline=OUTLINE, width=2)
+        if frame.vetoed is not None:  # the safety node refused a lane change here: a ring around the ego
+            cx, cy = view.project(ego.x, ego.y)
+            r = max(8.0, 0.75 * ego.length * view.scale)
+            draw.ellipse((cx - r, cy - r, cx + r, cy + r), outline=VETO, width=3)
     if caption is not None and opts.caption_height:
         _draw_caption(draw, frame, opts, caption)
     return img
@@ -207,7 +213,11 @@ def caption_lines(title: str, ep: EpisodeFrames, frame: Frame, step_seconds: flo
         ACTION_NAMES) else str(frame.action)  # fmt: skip
     reward = "-" if frame.reward is None else f"{frame.reward:+.2f}"
     outcome = ep.summary.outcome if frame.step == n_steps else "..."
-    return line1, f"action {action}   reward {reward}   return {frame.ret:+.2f}   outcome {outcome}"
+    line2 = f"action {action}   reward {reward}   return {frame.ret:+.2f}   outcome {outcome}"
+    if frame.vetoed is not None:
+        vetoed = ACTION_NAMES[frame.vetoed] if 0 <= frame.vetoed < len(ACTION_NAMES) else str(frame.vetoed)
+        line2 += f"   VETOED {vetoed} (safety)"
+    return line1, line2
 
 
 def _draw_caption(draw: ImageDraw.ImageDraw, frame: Frame, opts: RenderOptions, cap: Caption) -> None:

@@ -27,6 +27,7 @@ from der_ros.contract import (
     COMMAND,
     EGO_ROLE,
     REWARD,
+    SAFETY_EVENTS,
     SCENE_ROAD,
     SCENE_VEHICLES,
     LaneLine,
@@ -36,6 +37,7 @@ from der_ros.contract import (
     header_ns,
     parse_reward,
     parse_road_markers,
+    parse_safety_record,
     parse_vehicle_markers,
 )
 from der_ros.offline.episodes import EpisodeSummary, resolve_topics, scan_bag
@@ -60,6 +62,9 @@ class Frame:
     #: the action taken from here: the one the bridge applied (named by the next reward), else the
     #: agent's command; None at the episode's last step
     action: int | None
+    #: the command the safety node vetoed at this step (``safety/interventions``; keep lane was applied
+    #: instead), None when it let the command through or no safety node was recorded
+    vetoed: int | None = None
 
     def ego(self) -> VehicleMarker | None:
         return next((v for v in self.vehicles if v.role == EGO_ROLE), None)
@@ -146,8 +151,9 @@ def read_scene(reader: BagReader, episode: int | None = None, span: tuple[int, i
     snapshots: dict[int, tuple[VehicleMarker, ...]] = {}
     rewards: dict[int, tuple[float, int | None]] = {}
     commands: dict[int, int] = {}
-    t_reward, t_cmd = roles.get(REWARD), roles.get(COMMAND)
-    topics = {t for t in (t_vehicles, t_road, t_reward, t_cmd) if t}
+    vetoes: dict[int, int] = {}
+    t_reward, t_cmd, t_safety = roles.get(REWARD), roles.get(COMMAND), roles.get(SAFETY_EVENTS)
+    topics = {t for t in (t_vehicles, t_road, t_reward, t_cmd, t_safety) if t}
     for msg in reader.messages(topics):
         topic = msg.topic
         try:
@@ -174,6 +180,10 @@ def read_scene(reader: BagReader, episode: int | None = None, span: tuple[int, i
                 m = msg.decode()
                 if wanted(header_ns(m)):
                     commands[header_ns(m)] = command_action(m)
+            elif topic == t_safety:
+                rec = parse_safety_record(msg.decode())
+                if rec is not None and wanted(rec[0]) and rec[3] != rec[2]:  # applied != proposed: a veto
+                    vetoes[rec[0]] = rec[2]
         except ValueError as exc:
             raise BagError(msg.connection.path, msg.offset, f"{topic}: {exc}") from None
     if t_road is None or not lanes:
@@ -191,7 +201,7 @@ def read_scene(reader: BagReader, episode: int | None = None, span: tuple[int, i
             if i + 1 < len(stamps):
                 applied = rewards.get(stamps[i + 1], (None, None))[1]
                 action = applied if applied is not None else commands.get(stamp)
-            ep.frames.append(Frame(stamp, i, snapshots[stamp], reward, ret, action))
+            ep.frames.append(Frame(stamp, i, snapshots[stamp], reward, ret, action, vetoes.get(stamp)))
         out.append(ep)
     gaps = [b - a for a, b in zip(all_stamps, all_stamps[1:]) if b > a]
     step_seconds = min(gaps) / 1e9 if gaps else 0.5

@@ -24,6 +24,7 @@ from der_ros.agent.config import DQNConfig
 from der_ros.configuration import ConfigError, from_dict, param, read_yaml_mapping, reject_unknown_keys, to_dict
 from der_ros.replay.config import ReplayConfig
 from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
+from der_ros.safety.config import SafetyConfig
 
 __all__ = [
     "EnvConfig",
@@ -69,10 +70,17 @@ class EnvConfig:
     kwargs: dict = param(
         default_factory=dict, help="extra keyword arguments for gymnasium.make (e.g. a SUMO scenario's settings)"
     )
+    safety: SafetyConfig = param(
+        default_factory=SafetyConfig,
+        help="the shield between the agent and a lane-change env (docs/safety.md); kind 'none' leaves the env as is",
+    )
 
     def check(self) -> None:
         if not isinstance(self.kwargs, dict):
             raise ConfigError(f"kwargs = {self.kwargs!r}, expected a mapping of gymnasium.make keyword arguments")
+        if self.safety.enabled and not self.id.startswith("der_ros/"):
+            raise ConfigError(f"safety.kind = {self.safety.kind!r} needs a lane-change env ('der_ros/...'), "
+                              f"env.id is {self.id!r}")  # fmt: skip
 
 
 @dataclass
@@ -233,8 +241,8 @@ def apply_dotted_overrides(
         if not isinstance(sec, dict):
             raise ConfigError(f"{source}: section {section!r} is not a mapping")
         head, _, rest = name.partition(".")
-        if rest and isinstance(sec.get(head), dict):  # inside a mapping-valued key: env.kwargs.scenario.time_aware
-            sec[head] = dict(sec[head])
+        if rest and isinstance(sec.get(head, {}), dict):  # inside a mapping-valued key: env.kwargs.scenario.time_aware
+            sec[head] = dict(sec.get(head, {}))  # (absent: a new mapping, e.g. env.safety.kind without a safety section)
             node = sec[head]
             parts = rest.split(".")
             for part in parts[:-1]:

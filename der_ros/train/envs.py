@@ -26,6 +26,7 @@ import numpy as np
 
 import sumo_bridge  # noqa: F401  (registers the der_ros/* SUMO ids with gymnasium)
 from der_ros.configuration import ConfigError
+from der_ros.safety.wrapper import ShieldWrapper
 
 __all__ = ["make_env", "make_env_from_config", "is_atari_id", "EpisodicLife", "pickle_env_state"]
 
@@ -161,7 +162,7 @@ def make_env_from_config(cfg: Any, seed: int) -> gym.Env:
     ``der train`` can fail before it writes anything.
     """
     try:
-        return make_env(
+        env = make_env(
             cfg.id,
             seed,
             max_episode_steps=cfg.max_episode_steps,
@@ -180,6 +181,10 @@ def make_env_from_config(cfg: Any, seed: int) -> gym.Env:
     except TypeError as exc:  # gymnasium.make passes kwargs to the constructor
         raise ConfigError(f"env.kwargs = {dict(cfg.kwargs)!r}: {exc}", key="env.kwargs", value=dict(cfg.kwargs),
                           reason=str(exc)) from None
+    safety = getattr(cfg, "safety", None)
+    if safety is not None and safety.enabled:  # the shield (docs/safety.md): outermost, it sees every command
+        env = ShieldWrapper(env, safety)
+    return env
 
 
 def obs_spec(env: gym.Env) -> tuple[tuple[int, ...], np.dtype]:

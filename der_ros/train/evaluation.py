@@ -145,6 +145,7 @@ class EpisodeResult:
     length: int
     outcome: str  # one of OUTCOMES
     caused: bool = False  # a collision the agent caused (SUMO env)
+    interventions: int = 0  # commands the safety shield replaced by keep lane (env.safety, docs/safety.md)
 
 
 @dataclass
@@ -189,6 +190,11 @@ class EvalResult:
     def mean_return(self) -> float:
         return float(np.mean([e.ret for e in self.episodes])) if self.episodes else math.nan
 
+    @property
+    def mean_interventions(self) -> float:
+        """Mean number of shield interventions per episode (0 without a shield)."""
+        return float(np.mean([e.interventions for e in self.episodes])) if self.episodes else math.nan
+
     def summary(self) -> dict[str, float]:
         """The row of ``evaluations.csv`` (and the ``eval/*`` metric names)."""
         return {
@@ -200,6 +206,7 @@ class EvalResult:
             "any_collision": self.any_collision_rate,
             "time_limit": self.time_limit_rate,
             "mean_length": float(np.mean([e.length for e in self.episodes])) if self.episodes else math.nan,
+            "interventions": self.mean_interventions,
             "wall_s": self.wall_s,
         }
 
@@ -280,18 +287,24 @@ Policy = Callable[[np.ndarray, Sequence[dict[str, Any]]], Sequence[int]]
 class GreedyQPolicy:
     """argmax_a Q(s, a) of a Q-network (epsilon = 0), batched."""
 
-    def __init__(self, net: Any, obs_dtype: np.dtype) -> None:
+    def __init__(self, net: Any, obs_dtype: np.dtype, use_mask: bool = False) -> None:
         import torch
 
         self._torch = torch
         self.net = net
         self.obs_dtype = np.dtype(obs_dtype)
+        #: a shield in mask mode: argmax over the actions ``info["action_mask"]`` allows
+        self.use_mask = use_mask
 
     def __call__(self, obs: np.ndarray, infos: Sequence[dict[str, Any]]) -> Sequence[int]:
         torch = self._torch
         with torch.inference_mode():
             x = torch.from_numpy(np.ascontiguousarray(obs, dtype=self.obs_dtype))
-            return self.net(x).argmax(1).tolist()
+            q = self.net(x)
+            if self.use_mask:
+                allowed = torch.from_numpy(np.stack([np.asarray(i["action_mask"], dtype=bool) for i in infos]))
+                q = q.masked_fill(~allowed, -math.inf)
+            return q.argmax(1).tolist()
 
 
 def _outcome(info: dict[str, Any], terminated: bool, truncated: bool) -> tuple[str, bool]:
@@ -364,7 +377,7 @@ def run_episodes(
                 outcome, caused = _outcome(info, terminated, truncated)
                 results[(stream, k)] = EpisodeResult(
                     seed=int(seeds[stream]) if k == 0 else None, stream=stream, ret=ret, length=int(slot[5]),
-                    outcome=outcome, caused=caused,
+                    outcome=outcome, caused=caused, interventions=int(info.get("interventions", 0)),
                 )  # fmt: skip
                 if k + 1 < sizes[stream]:
                     start(i, stream, k + 1)
@@ -409,7 +422,9 @@ def _evaluate(spec: EvalSpec, envs: Sequence[Any], step: int, state: dict[str, A
     t0 = time.perf_counter()
     n_streams = math.ceil(episodes / spec.episodes_per_seed) if episodes else 0
     seeds = evaluation_seeds(n_streams, spec.seed_base)
-    policy = GreedyQPolicy(_build_net(spec, state), np.dtype(spec.obs_dtype))
+    safety = getattr(spec.env_cfg, "safety", None)
+    use_mask = safety is not None and safety.enabled and safety.mode == "mask"
+    policy = GreedyQPolicy(_build_net(spec, state), np.dtype(spec.obs_dtype), use_mask=use_mask)
     eps = run_episodes(policy, envs, seeds, episodes, spec.episodes_per_seed)
     return EvalResult(step=step, episodes=eps, seeds=seeds, wall_s=time.perf_counter() - t0)
 

@@ -38,6 +38,8 @@ import numpy as np
 import torch
 
 from der_ros.agent.dqn import DQNAgent, resolve_device
+from der_ros.safety.apply import replace_unsafe
+from der_ros.safety.wrapper import target_mask_for
 from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.env_process import EnvProcess, use_env_process
 from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
@@ -257,6 +259,7 @@ def _train(
     agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
     if point is not None:
         agent.load_state_dict(point.agent_state)
+    target_mask = target_mask_for(cfg.env)  # mask mode: the next state's mask in the target (refused before any write)
     run_path.mkdir(parents=True, exist_ok=True)
     save_experiment_config(cfg, run_path / "config.yaml")
     acc = MeanAccumulator()
@@ -267,6 +270,7 @@ def _train(
     wall_offset = 0.0
     obs: np.ndarray
     resume_step: int | None = None
+    start_info: dict[str, Any] = {}
     if point is not None and point.runner is not None:
         runner = point.runner
         resume_step = agent.steps
@@ -283,15 +287,19 @@ def _train(
                 env = pickle.loads(point.env_bytes)
             obs = np.asarray(runner["obs"])
         else:
-            obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+            obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
         log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
     elif point is not None:  # der graph's agent node: same learner, a new episode in this env
         resume_step = agent.steps
-        obs, _ = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+        obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
         log.info("resumed the agent node's learner from %s at step %d (%d transitions in replay); episode "
                  "counts start at 0", resume, agent.steps, len(agent.replay))
     else:
-        obs, _ = env.reset(seed=t_cfg.seed)
+        obs, start_info = env.reset(seed=t_cfg.seed)
+    # the shield (env.safety, docs/safety.md): the verdict on ``obs``; the learner stores the applied action
+    mask: np.ndarray | None = start_info.get("action_mask")
+    mask_mode = cfg.env.safety.enabled and cfg.env.safety.mode == "mask"
+    agent.target_mask = target_mask
 
     redo_eval = bool(t_cfg.eval_interval) and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps
     if resume_step is not None and redo_eval:  # the evaluation at this step is redone below, once
@@ -329,6 +337,8 @@ def _train(
             event = info["event"]
             writer.scalars(agent.steps, wall(), {"charts/episode_success": float(event == "success"),
                                                  "charts/episode_collision": float(event == "collision")})  # fmt: skip
+        if "interventions" in info:  # the shield's vetoes in this episode (env.safety)
+            writer.scalars(agent.steps, wall(), {"charts/episode_interventions": float(info["interventions"])})
         if on_episode is not None:
             on_episode(episode, agent.steps, ret)
 
@@ -371,23 +381,26 @@ def _train(
             # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
             evaluate_now(t_cfg.eval_episodes)
         while agent.steps < t_cfg.total_steps:
-            action = agent.act(obs)
+            action = agent.act(obs, mask=mask) if mask_mode else agent.act(obs)
+            applied, _ = replace_unsafe(action, mask)  # what the shield wrapper will apply (itself if no shield)
             if overlap:  # the gradient step runs while the worker simulates (module env_process)
                 env.step_async(action)
-                agent.observe_deferred(obs, action, step_result.complete)
+                agent.observe_deferred(obs, applied, step_result.complete)
                 metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
                 agent.replay.resolve_deferred()
                 next_obs, reward, terminated, truncated, info, reset = step_result.take()
             else:
                 next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+                agent.observe(obs, applied, float(reward), next_obs, bool(terminated), bool(truncated))
                 metrics = agent.learn()
             if metrics:
                 acc.add(metrics)
             if "episode" in info:
                 record_episode(info)
+            mask = info.get("action_mask")
             if terminated or truncated:
                 next_obs, reset_info = reset if overlap else env.reset()
+                mask = reset_info.get("action_mask")
                 if "episode" in reset_info:
                     record_episode(reset_info)
             obs = next_obs

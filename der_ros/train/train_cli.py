@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from der_ros.configuration import ConfigError, add_dataclass_arguments, field_specs
+from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import (
     SECTIONS,
     ExperimentConfig,
@@ -42,6 +43,8 @@ SHORT_FLAGS = {
     "steps": "train.total_steps",
     "device": "train.device",
     "run_dir": "train.run_dir",
+    "safety": "env.safety.kind",
+    "safety_mode": "env.safety.mode",
 }
 
 
@@ -56,6 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--run-dir", dest="run_dir", default=None, help="output folder (default runs/<env>-<replay>-<seed>-<time>)"
     )
     parser.add_argument("--resume", type=Path, default=None, help="continue from a checkpoint.pt of an earlier run")
+    parser.add_argument("--safety", choices=SAFETY_KINDS, default=None,
+                        help="the shield in front of the agent (env.safety.kind; docs/safety.md): none, rss or sumo")
+    parser.add_argument("--safety-mode", dest="safety_mode", choices=SAFETY_MODES, default=None,
+                        help="replace (an unsafe command becomes keep lane) or mask (env.safety.mode)")
     add_set_argument(parser)
     for section, cls in SECTIONS.items():
         group = parser.add_argument_group(f"{section} section (per-field overrides)")

@@ -94,7 +94,7 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert "der graph: finished" in out, out + logs
 
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["ok"] and summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}, logs
+    assert summary["ok"] and summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "safety_node": 0, "bridge_node": 0}, logs
     assert summary["checkpoint"] and Path(summary["checkpoint"]).is_file()
     assert summary["plots"] and all(Path(p).is_file() for p in summary["plots"])
     params = yaml.safe_load((run_dir / "params.yaml").read_text())
@@ -108,8 +108,11 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     meta = bag_meta(bag)
     assert meta["custom_data"][FINALIZED_KEY] == "true"
     c = counts(meta)
-    for topic in ("/state", "/reward", "/lane_change_cmd", "/episode", "/clock"):
+    for topic in ("/state", "/reward", "/lane_change_cmd", "/episode", "/clock", "/safety/interventions"):
         assert c.get(topic, 0) > 0, f"{topic}: {c}{logs}"
+    # the default graph runs the shield: every command the bridge got passed the safety node, which recorded it
+    assert summary["safety"]["commands"] == c["/safety/interventions"] >= steps - 1, logs
+    assert "safety interventions" in out
     # the recorder stopped last, so it holds every state the bridge published (bridge's own count)
     bridge_log = (run_dir / "logs" / "bridge_node.log").read_text()
     bridge = json.loads(re.search(r"bridge summary: (\{.*\})", bridge_log).group(1))
@@ -165,6 +168,17 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # step keys t_k, in order
 
 
+def test_a_bogus_safety_value_is_refused_before_anything_starts(ros_domain: int, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    for value in ("bogus", "sumo"):
+        proc = der_graph(run_dir, ros_domain, "--steps", "5", "--safety", value)
+        out, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 2, out
+        lines = [line for line in out.splitlines() if line.strip()]
+        assert len(lines) == 1 and "--safety" in lines[0] and value in lines[0], out
+        assert not run_dir.exists()
+
+
 def test_a_run_the_agent_never_answered_is_a_failure(ros_domain: int, tmp_path: Path) -> None:
     """Every node exits 0, yet no step was driven by the agent (here: a command timeout of 1 us, shorter than any
     answer can take): der graph says so in one line and exits 1 instead of reporting a finished run."""
@@ -176,7 +190,7 @@ def test_a_run_the_agent_never_answered_is_a_failure(ros_domain: int, tmp_path: 
         reap(proc, run_dir)
     logs = node_logs(run_dir)
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}, out + logs
+    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "safety_node": 0, "bridge_node": 0}, out + logs
     assert summary["bridge"]["sim_steps"] == 15 and summary["bridge"]["commands/accepted"] == 0, out + logs
     assert proc.returncode == 1, out + logs
     assert not summary["ok"] and "the agent answered none of the bridge's 15 steps" in summary["outcome"]
@@ -229,7 +243,7 @@ def test_ctrl_c_stops_cleanly_with_a_finalised_bag(ros_domain: int, tmp_path: Pa
     assert meta["custom_data"][FINALIZED_KEY] == "true"
     assert (run_dir / "agent.pt").is_file()  # the agent saved on its way out
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
+    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "safety_node": 0, "bridge_node": 0}
 
 
 def test_a_dying_node_fails_the_run_and_is_named(ros_domain: int, tmp_path: Path) -> None:
@@ -270,7 +284,7 @@ def test_nodes_stop_when_the_runner_is_sigkilled(ros_domain: int, tmp_path: Path
     try:
         wait_for_states(run_dir, proc, more_than=5)
         pids = json.loads((run_dir / "pids.json").read_text())
-        assert set(pids) == {"recorder_node", "agent_node", "bridge_node"}
+        assert set(pids) == {"recorder_node", "agent_node", "safety_node", "bridge_node"}  # the shield is on by default
         assert all(_running(pid) for pid in pids.values())
         os.kill(proc.pid, signal.SIGKILL)  # the runner only: the nodes are in sessions of their own
         proc.wait(timeout=10)

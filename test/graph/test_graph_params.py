@@ -18,6 +18,7 @@ NODES = {
     "bridge_node": "der_ros.nodes.bridge_node",
     "agent_node": "der_ros.nodes.agent_node",
     "recorder_node": "der_ros.nodes.recorder_node",
+    "safety_node": "der_ros.nodes.safety_node",
 }
 STANDARD = {"use_sim_time"}  # declared by rclpy itself
 

@@ -1,0 +1,92 @@
+"""Which actions are safe in a state: the RSS check on the ego and its observed neighbour slots.
+
+Input is the points array of :mod:`sumo_bridge.observation` (what the env's ``info["points"]`` and
+the graph's ``state`` cloud carry): row 0 the ego, rows 1.. the slots ``leader, follower,
+left_leader, left_follower, right_leader, right_follower`` with absolute speed, relative speed and
+the bumper-to-bumper gap along the road.
+
+A lane change to a side is safe when
+
+* the ego's lane has a lane on that side (``lane_count``; no lane there -> unsafe),
+* the new leader on that side (if observed) is farther ahead than the RSS safe distance with the
+  ego as the rear car, and
+* the new follower on that side (if observed) is farther behind than the RSS safe distance with
+  the follower as the rear car,
+
+each distance from :func:`der_ros.safety.rss.safe_longitudinal_distance` plus ``margin``. An empty
+slot means no vehicle within the neighbour range (30 m): it imposes nothing. Keep lane is always
+safe. A malformed ego row (non-finite numbers, a wrong shape) allows keep only: the shield fails
+safe. What this does *not* cover is in docs/safety.md.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from der_ros.safety.config import SafetyConfig
+from der_ros.safety.rss import safe_longitudinal_distance
+from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES
+
+__all__ = ["RssChecker", "N_ACTIONS", "SIDES"]
+
+#: keep, left, right (``ACTION_NAMES``)
+N_ACTIONS = 3
+#: action -> (side name of its slots, lane offset)
+SIDES: dict[int, tuple[str, int]] = {1: ("left", 1), 2: ("right", -1)}
+
+_COL = {name: i for i, name in enumerate(POINT_FIELDS)}
+_SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
+_PRESENT, _LANES = _COL["present"], _COL["lane_count"]
+_ROW = {name: 1 + i for i, name in enumerate(SLOT_NAMES)}
+_SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
+
+
+class RssChecker:
+    """``mask(points)``: a bool array over (keep, left, right), True where the action is safe."""
+
+    def __init__(self, cfg: SafetyConfig) -> None:
+        self.cfg = cfg
+        self._params = (cfg.response_time, cfg.accel_max, cfg.brake_min, cfg.brake_max)
+
+    def leader_distance(self, v_ego: float, v_leader: float) -> float:
+        """Safe gap (m) to a new leader: the ego is the rear car."""
+        return safe_longitudinal_distance(v_ego, v_leader, *self._params) + self.cfg.margin
+
+    def follower_distance(self, v_ego: float, v_follower: float) -> float:
+        """Safe gap (m) to a new follower: the follower is the rear car."""
+        return safe_longitudinal_distance(v_follower, v_ego, *self._params) + self.cfg.margin
+
+    def change_safe(self, points: np.ndarray | list[list[float]], action: int) -> bool:
+        """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists)."""
+        side, offset = SIDES[action]
+        ego = points[0]
+        v_ego, lane, lanes = float(ego[_SPEED]), float(ego[_LANE]), float(ego[_LANES])
+        if not (math.isfinite(v_ego) and math.isfinite(lane) and math.isfinite(lanes)):
+            return False
+        if not 0 <= lane + offset < lanes:
+            return False  # no lane on that side
+        for slot, is_leader in ((f"{side}_leader", True), (f"{side}_follower", False)):
+            row = points[_ROW[slot]]
+            if not row[_PRESENT] > 0.5:
+                continue
+            gap, v = float(row[_GAP]), v_ego + float(row[_REL])
+            if not (math.isfinite(gap) and math.isfinite(v)):
+                return False
+            need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
+            if not gap > need:
+                return False
+        return True
+
+    def mask(self, points: np.ndarray) -> np.ndarray:
+        """Safe actions in ``points`` (shape ``(1 + len(SLOT_NAMES), len(POINT_FIELDS))``)."""
+        out = np.zeros(N_ACTIONS, dtype=bool)
+        out[0] = True
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape != _SHAPE:
+            return out
+        rows = pts.tolist()  # plain floats: several times faster to index than numpy scalars at this size
+        out[1] = self.change_safe(rows, 1)
+        out[2] = self.change_safe(rows, 2)
+        return out

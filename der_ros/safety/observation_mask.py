@@ -1,0 +1,65 @@
+"""The RSS mask of a batch of stored observations: the learner's target in mask mode.
+
+In mask mode the target's max runs over the actions allowed in the *next* state
+(``y = r + gamma max_{a' allowed in s'} Q_target(s', a')``). The replay stores observations, not
+points, so the mask is recomputed from the observation vector of :mod:`sumo_bridge.observation`,
+which carries everything the RSS check reads: the ego's speed (``speed / speed_scale``), whether
+a lane exists on each side, and per slot the present flag, ``gap / neighbour_range`` and
+``rel_speed / speed_scale``. It equals :class:`der_ros.safety.checker.RssChecker`'s mask on the
+points up to float32 rounding, as long as the ego's speed stays below ``speed_scale`` and relative
+speeds within +-``speed_scale`` (20 m/s on the shipped configs; the observation clips beyond).
+Vectorised numpy: one call per batch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from der_ros.safety.checker import N_ACTIONS
+from der_ros.safety.config import SafetyConfig
+from sumo_bridge.observation import EGO_FEATURES, SLOT_FEATURES, SLOT_NAMES, ObservationConfig
+
+__all__ = ["ObservationMask"]
+
+_EGO = {name: i for i, name in enumerate(EGO_FEATURES)}
+_FEAT = {name: i for i, name in enumerate(SLOT_FEATURES)}
+
+
+def _slot_col(slot: str, feature: str) -> int:
+    return len(EGO_FEATURES) + len(SLOT_FEATURES) * SLOT_NAMES.index(slot) + _FEAT[feature]
+
+
+def _rss(v_rear: np.ndarray, v_front: np.ndarray, cfg: SafetyConfig) -> np.ndarray:
+    """:func:`der_ros.safety.rss.safe_longitudinal_distance` on arrays, plus the margin."""
+    rho, acc = cfg.response_time, cfg.accel_max
+    v_r, v_f = np.maximum(v_rear, 0.0), np.maximum(v_front, 0.0)
+    v_after = v_r + rho * acc
+    d = v_r * rho + 0.5 * acc * rho * rho + v_after * v_after / (2.0 * cfg.brake_min) - v_f * v_f / (2.0 * cfg.brake_max)
+    return np.maximum(d, 0.0) + cfg.margin
+
+
+class ObservationMask:
+    """``mask(obs_batch)`` -> bool array ``(batch, 3)``: True where an action is safe."""
+
+    def __init__(self, cfg: SafetyConfig, obs_cfg: ObservationConfig) -> None:
+        self.cfg, self.obs_cfg = cfg, obs_cfg
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        x = np.asarray(obs, dtype=np.float64)
+        if x.ndim == 1:
+            x = x[None, :]
+        scale, rng = self.obs_cfg.speed_scale, self.obs_cfg.neighbour_range
+        v_ego = x[:, _EGO["speed"]] * scale
+        out = np.zeros((x.shape[0], N_ACTIONS), dtype=bool)
+        out[:, 0] = True
+        for action, side, has_lane in ((1, "left", "has_left_lane"), (2, "right", "has_right_lane")):
+            ok = x[:, _EGO[has_lane]] > 0.5
+            for role, is_leader in (("leader", True), ("follower", False)):
+                slot = f"{side}_{role}"
+                present = x[:, _slot_col(slot, "present")] > 0.5
+                gap = x[:, _slot_col(slot, "gap")] * rng
+                v = v_ego + x[:, _slot_col(slot, "rel_speed")] * scale
+                need = _rss(v_ego, v, self.cfg) if is_leader else _rss(v, v_ego, self.cfg)
+                ok &= ~present | (gap > need)
+            out[:, action] = ok
+        return out

@@ -1,0 +1,94 @@
+"""The shield as a gymnasium wrapper: ``der train``, ``der table3`` and ``der baselines`` in process.
+
+The wrapper checks every step's command against the verdict on the state it is applied in (the
+points of the last ``reset``/``step``) and, in both modes, replaces an unsafe one by keep lane
+(replace mode relies on this; in mask mode the agent already chose an allowed action, so the
+wrapper only guards). It adds to ``info``:
+
+* ``action_mask`` -- the safe actions in the *returned* state (bool, keep/left/right): what the
+  next command is checked against, and what a mask-mode agent chooses from;
+* ``proposed_action``, ``applied_action``, ``intervened`` -- this step's command, what was applied
+  and whether the shield changed it (``step`` only);
+* ``interventions`` -- the episode's interventions so far.
+
+The environment must be a lane-change env (``info["points"]``); ``kind: sumo`` also needs its
+simulation (``env.unwrapped.api`` and ``ego_id``) in this process.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from der_ros.configuration import ConfigError
+from der_ros.safety.apply import replace_unsafe
+from der_ros.safety.checker import RssChecker
+from der_ros.safety.config import SafetyConfig
+from der_ros.safety.observation_mask import ObservationMask
+from der_ros.safety.sumo_check import sumo_mask
+from sumo_bridge import ENV_NETWORKS
+from sumo_bridge.scenario import scenario_from_kwargs
+
+__all__ = ["ShieldWrapper", "target_mask_for"]
+
+
+class ShieldWrapper(gym.Wrapper):
+    """Replace unsafe lane-change commands by keep lane; publish the verdict in ``info``."""
+
+    def __init__(self, env: gym.Env, cfg: SafetyConfig) -> None:
+        super().__init__(env)
+        if not cfg.enabled:
+            raise ConfigError("safety.kind = 'none': nothing to wrap")
+        self.cfg = cfg
+        self._rss = RssChecker(cfg) if cfg.kind == "rss" else None
+        self._mask: np.ndarray | None = None
+        self.interventions = 0
+
+    def verdict(self, info: dict[str, Any]) -> np.ndarray:
+        """The safe actions in the state ``info`` describes."""
+        points = info.get("points")
+        if points is None:
+            raise ConfigError(f"safety.kind = {self.cfg.kind!r} needs a lane-change env (info['points']); "
+                              f"{self.env.spec.id if self.env.spec else self.env!r} has none")  # fmt: skip
+        if self._rss is not None:
+            return self._rss.mask(points)
+        inner = self.env.unwrapped
+        return sumo_mask(inner.api, inner.ego_id, points)
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self.interventions = 0
+        self._mask = self.verdict(info)
+        info["action_mask"] = self._mask
+        info["interventions"] = 0
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        applied, intervened = replace_unsafe(int(action), self._mask)
+        self.interventions += intervened
+        obs, reward, terminated, truncated, info = self.env.step(applied)
+        self._mask = self.verdict(info)
+        info.update(action_mask=self._mask, proposed_action=int(action), applied_action=applied,
+                    intervened=intervened, interventions=self.interventions)  # fmt: skip
+        return obs, reward, terminated, truncated, info
+
+
+def target_mask_for(env_cfg: Any) -> ObservationMask | None:
+    """The learner's next-state mask (mask mode) for an :class:`der_ros.train.config.EnvConfig`.
+
+    None without a shield or in replace mode. Mask mode needs ``kind: rss``: SUMO's verdict on a
+    stored state cannot be recomputed from its observation.
+    """
+    cfg: SafetyConfig = env_cfg.safety
+    if not cfg.enabled or cfg.mode != "mask":
+        return None
+    if cfg.kind != "rss":
+        raise ConfigError(f"env.safety.mode = 'mask' with kind = {cfg.kind!r}: mask mode needs kind 'rss' (the "
+                          "learner recomputes the next state's mask from the stored observation)")  # fmt: skip
+    network = ENV_NETWORKS.get(env_cfg.id)
+    if network is None:
+        raise ConfigError(f"env.safety.kind = 'rss' needs a lane-change env id {tuple(ENV_NETWORKS)}, got {env_cfg.id!r}")
+    scenario = scenario_from_kwargs(network, dict(env_cfg.kwargs).get("scenario"))
+    return ObservationMask(cfg, scenario.observation)
