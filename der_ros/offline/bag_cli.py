@@ -1,4 +1,4 @@
-"""``der bag`` (old spelling: ``der bag``): inspect, plot, export, train from, render and play recorded MCAP bags.
+"""``der bag`` (old spelling: ``der replay``): inspect, plot, export, train from, render and play recorded MCAP bags.
 
     der bag info BAG [--json]
     der bag plot BAG [BAG...] [--out DIR] [--label NAME ...]

@@ -28,7 +28,7 @@ from ray_helpers import CARTPOLE, LOOPBACK, REPO, ray_listening_addresses, ray_t
 
 from der_ros import cli
 from der_ros.experiments import sweep
-from der_ros.experiments.backends.dispatch import dispatch as backends
+from der_ros.experiments.backends import dispatch as backends
 from der_ros.experiments.backends.dispatch import LocalBackend, RayBackend, RunEvent, SuiteRunError, run_specs
 from der_ros.experiments.backends.ray_cluster import loopback_ray
 from der_ros.experiments.run_compare import run_differences

@@ -192,7 +192,7 @@ def test_cli_info_json_schema_and_text(env_bag: tuple[Path, object], capsys: pyt
 
 def test_der_replay_is_the_old_spelling_of_der_bag(env_bag: tuple[Path, object],
                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    """``der bag`` was ``der bag`` before issue 42; scripts that spell it the old way still work."""
+    """``der bag`` was ``der replay`` before issue 42; scripts that spell it the old way still work."""
     path, _truth = env_bag
     assert der_main(["bag", "info", str(path), "--json"]) == 0
     new = json.loads(capsys.readouterr().out)
