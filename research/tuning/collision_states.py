@@ -2,7 +2,7 @@
 
 For each run directory (``config.yaml`` and ``checkpoint.pt``) and the evaluation seeds where that
 run caused a collision (read from ``--evaluations DIR/<method>/<seed dir>/evaluation.json``, e.g.
-results/run_files/table3_ring_h1_eval3000), replays the episode with the run's greedy policy and
+research/run_files/table3_ring_h1_eval3000), replays the episode with the run's greedy policy and
 prints the state at the decision where it commanded the lane change that collided: the gaps (m)
 and relative speeds (m/s) of the target-side leader and follower, and whether the tuned
 gap-acceptance rule (config/baselines.yaml) would have accepted that same gap, and which of three

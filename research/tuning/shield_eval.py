@@ -6,7 +6,7 @@ seconds at constant speeds (leader: gap + rel_speed * h < 0; follower: gap - rel
 Everything else is the run's greedy policy. Each run's final checkpoint is evaluated on the first
 ``--episodes`` report evaluation seeds (``EVAL_SEED_BASE + k``) and saved as
 ``--out DIR/<method>/<seed dir>/evaluation.json`` for research/tuning/compare_arms.py
-(results/run_files/table3_ring_h1_eval3000/README.md, last section).
+(research/run_files/table3_ring_h1_eval3000/README.md, last section).
 
     python research/tuning/shield_eval.py RUN_DIR [RUN_DIR ...] --out DIR [--episodes 3000] [--horizon 1.0]
 """

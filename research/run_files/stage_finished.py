@@ -1,6 +1,6 @@
-"""Copy the small files of finished suite runs into results/run_files (for committing).
+"""Copy the small files of finished suite runs into research/run_files (for committing).
 
-    python results/run_files/stage_finished.py runs/t3urban/urban results/run_files/table3/urban
+    python research/run_files/stage_finished.py runs/t3urban/urban research/run_files/table3/urban
 
 A run directory ``<src>/<method>/seed<k>/`` is finished when its ``summary.json`` says it trained
 all its steps without interruption and its ``evaluation.json`` (the final greedy evaluation)
@@ -32,7 +32,7 @@ def finished(run: Path) -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("src", type=Path, help="network folder of a suite's --out, e.g. runs/t3urban/urban")
-    parser.add_argument("dst", type=Path, help="where the files go, e.g. results/run_files/table3/urban")
+    parser.add_argument("dst", type=Path, help="where the files go, e.g. research/run_files/table3/urban")
     args = parser.parse_args(argv)
     if not args.src.is_dir():
         parser.error(f"src {args.src} is not a directory")
