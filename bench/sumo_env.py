@@ -13,6 +13,17 @@
 * ``raw_over_traci``: raw libsumo steps/s over traci env steps/s, the ceiling of
   ``env_over_traci`` (what an env with no per-step work at all beside the simulation step would
   reach on this machine);
+* ``commit_env_vs_raw``: the commit step (ring.yaml's task: ``commit_on_success``, the change's
+  transition simulates the rest of the 50-decision horizon) against raw libsumo stepping the same
+  simulated time with the same reads, in simulated steps per second. The env side is the time
+  inside the ``step`` that commits (the change's decision plus the fast-forward), over episodes where
+  the gap-acceptance policy's change succeeds; the raw side starts from the same seeded state and
+  runs, per SUMO step, ``simulationStep()`` and the collision count, and per decision every
+  vehicle's speed and their mean (the reward's reads), nothing else (the ego's context
+  subscription dropped). The speeds are read both ways libsumo offers -- the env's speed
+  subscriptions (``getAllSubscriptionResults``) and getters (``getIDList`` + ``getSpeed``) -- and
+  the faster of the two per round is the peer (``commit_raw_reads``: which one won). Each commit is
+  followed by the raw runs on its seed and length, so a pair shares the machine's load;
 * ``default_*``: the same libsumo / traci comparison at the scenario's default
   ``decision_interval`` (5 SUMO steps per decision, what training uses), in simulated steps per
   second so it compares with ``raw_steps_per_s``.
@@ -26,6 +37,7 @@ needs timing. Prints a table, then one JSON line.
     .venv/bin/python bench/sumo_env.py            # ~1-2 minutes
     .venv/bin/python bench/sumo_env.py --quick    # ~15 s
     .venv/bin/python bench/sumo_env.py --exit     # the exit scenario only (issue 44)
+    .venv/bin/python bench/sumo_env.py --commit-only   # the commit step against raw libsumo, ~30 s
 """
 
 from __future__ import annotations
@@ -33,6 +45,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import platform
 import statistics
@@ -159,6 +172,92 @@ def speed(rounds: int, chunk: int, traci_chunk: int) -> dict[str, float]:
     }
 
 
+COMMIT_CFG = {"commit_on_success": True}
+
+
+def _commit_episode(env: LaneChangeEnv, seed: int) -> tuple[float, int] | None:
+    """Seconds inside the committing ``step`` and the SUMO steps it simulated; None if the episode
+    ended without a commit (the change collided, or no gap before the horizon)."""
+    _obs, info = env.reset(seed=seed)
+    while True:
+        a = gap_acceptance_policy(info["points"])
+        t0 = time.perf_counter()
+        _obs, _r, term, trunc, info = env.step(a)
+        dt = time.perf_counter() - t0
+        if info["committed_steps"]:
+            return (dt, (info["committed_steps"] + 1) * env.config.decision_interval) if info["event"] == "success" else None
+        if term or trunc:
+            return None
+
+
+def _commit_raw(env: LaneChangeEnv, seed: int, sim_steps: int, getters: bool) -> float:
+    """Seconds of raw libsumo stepping ``sim_steps`` from the seeded reset's state with the reward's reads."""
+    env.reset(seed=seed)
+    api = env.api
+    vehicle = api.vehicle
+    vehicle.unsubscribeContext(env.ego_id, env._tc.CMD_GET_VEHICLE_VARIABLE, env._ctx_range)  # no observation
+    step, colliding = api.simulationStep, api.simulation.getCollidingVehiclesNumber
+    speed_var = env._tc.VAR_SPEED
+    di = env.config.decision_interval
+    if getters:
+        for vid in vehicle.getIDList():
+            vehicle.unsubscribe(vid)
+        get_ids, get_speed = vehicle.getIDList, vehicle.getSpeed
+    t0 = time.perf_counter()
+    for k in range(sim_steps):
+        step()
+        if colliding():
+            pass
+        if k % di == di - 1:
+            if getters:
+                ids = get_ids()
+                _mean = math.fsum(map(get_speed, ids)) / len(ids)
+            else:
+                res = vehicle.getAllSubscriptionResults()
+                _mean = math.fsum(r[speed_var] for r in res.values()) / len(res)
+    return time.perf_counter() - t0
+
+
+def commit_speed(rounds: int, episodes: int) -> dict[str, float | str]:
+    """Medians over interleaved rounds: the commit step's simulated steps per second, raw libsumo's on
+    the same seeds and lengths (the faster of its two ways to read the speeds), their ratio."""
+    env = LaneChangeEnv(ScenarioConfig.ring(**COMMIT_CFG))
+    envs, raws, ratios, wins, decisions = [], [], [], [], []
+    try:
+        seed = 0
+        for _ in range(rounds):
+            # each commit, then raw libsumo on the same seed and length right after it (a shared machine's
+            # load drifts: the closer the pair, the better the ratio)
+            env_s, steps, done = 0.0, 0, 0
+            by_way = {"subscriptions": 0.0, "getters": 0.0}
+            while done < episodes:
+                got = _commit_episode(env, seed)
+                if got is not None:
+                    env_s += got[0]
+                    steps += got[1]
+                    done += 1
+                    for way in by_way:
+                        by_way[way] += _commit_raw(env, seed, got[1], way == "getters")
+                seed += 1
+            way, raw_s = min(by_way.items(), key=lambda kv: kv[1])
+            envs.append(steps / env_s)
+            raws.append(steps / raw_s)
+            ratios.append(raw_s / env_s)
+            wins.append(way)
+            decisions.append(steps / env.config.decision_interval / done)
+    finally:
+        env.close()
+    med = statistics.median
+    return {
+        "commit_env": med(envs),
+        "commit_raw": med(raws),
+        "commit_env_vs_raw": med(ratios),
+        "commit_raw_reads": max(set(wins), key=wins.count),
+        "commit_decisions": med(decisions),
+        "commit_ratios": ratios,
+    }
+
+
 def evaluate(network: str, policy: Callable[[np.ndarray], int], episodes: int, seed: int) -> dict[str, float]:
     cfg = ScenarioConfig.ring() if network == "ring" else ScenarioConfig.urban()
     env = LaneChangeEnv(cfg)
@@ -238,6 +337,7 @@ def main() -> int:
     parser.add_argument("--no-policies", action="store_true", help="skip the scripted-policy success rates")
     parser.add_argument("--exit", action="store_true",
                         help="only the exit scenario: env step vs raw libsumo, and reset times (issue 44)")
+    parser.add_argument("--commit-only", action="store_true", help="only the commit step against raw libsumo")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.exit:
@@ -247,6 +347,24 @@ def main() -> int:
         print(json.dumps({k: round(v, 3) for k, v in e.items()}))
         return 0
     rounds, chunk, traci_chunk, episodes = (3, 1000, 200, 30) if args.quick else (15, 2000, 400, 200)
+    commit_rounds, commit_episodes = (3, 10) if args.quick else (9, 20)
+
+    c = commit_speed(commit_rounds, commit_episodes)
+    print(f"commit step (ring.yaml task, {c['commit_decisions']:.1f} decisions per committing step), simulated steps / s,"
+          f" median of {commit_rounds} rounds of {commit_episodes} commits")
+    print(f"{'env commit step':<34}{c['commit_env']:>12.0f}   {c['commit_env_vs_raw']:.3f} x raw"
+          f" (rounds {', '.join(f'{r:.2f}' for r in c['commit_ratios'])})")
+    print(f"{'raw libsumo, same reads':<34}{c['commit_raw']:>12.0f}   (speeds read by {c['commit_raw_reads']})")
+    commit_json = {
+        "commit_env_vs_raw": round(float(c["commit_env_vs_raw"]), 3),
+        "commit_env_sim_steps_per_s": round(float(c["commit_env"]), 1),
+        "commit_raw_sim_steps_per_s": round(float(c["commit_raw"]), 1),
+        "commit_raw_reads": c["commit_raw_reads"],
+        "commit_decisions_per_step": round(float(c["commit_decisions"]), 2),
+    }
+    if args.commit_only:
+        print(json.dumps(commit_json))
+        return 0
 
     m = speed(rounds, chunk, traci_chunk)
     print(f"{'measure (median of ' + str(rounds) + ' rounds)':<34}{'value':>12}")
@@ -262,6 +380,7 @@ def main() -> int:
           f" (ceiling {m['default_raw_over_traci']:.2f})")
 
     result: dict[str, object] = {
+        **commit_json,
         "raw_steps_per_s": round(m["raw"], 1),
         "env_steps_per_s": round(m["env"], 1),
         "traci_env_steps_per_s": round(m["traci"], 1),

@@ -31,6 +31,15 @@ In one process, on the default ring scenario (``config/ring.yaml``), one after t
   learning rate, gamma and gradient clipping. SB3's DQN always uses the Huber loss and a
   uniform buffer: it is the peer a user would pick, not a DER implementation.
 
+* ``vec``: our loop with ``train.num_envs: 2`` (two env worker processes feeding the learner, one gradient
+  step per decision overall; der_ros/train/env_pool.py) against ``loop`` (N = 1, the default loop on this
+  machine), paired within a round: ``vec_speedup``. Both rates are taken from the first episode end after
+  learning starts to the last one (starting and closing the worker processes excluded, as SB3's rate
+  excludes its ``env.close()``);
+* ``sb3_vec``: SB3's DQN on a ``SubprocVecEnv`` of 2 envs against a ``SubprocVecEnv`` of 1, the same
+  settings as ``sb3_loop`` but ``gradient_steps=-1`` (one gradient step per env step collected, so the
+  replay ratio stays one per decision): ``sb3_vec_speedup``.
+
 Both loops are timed from the step where learning starts to their end (the learning-free
 start is excluded for both), by wall clock and by this process's CPU time. ``--repeats`` rounds
 run every part once each; rates are the best of the rounds, ratios the median over the rounds
@@ -42,6 +51,7 @@ load; the ratios of one run are what to compare.
 
     .venv/bin/python bench/train_loop.py            # 4,000 decisions per loop, 3 rounds (~5 min)
     .venv/bin/python bench/train_loop.py --quick    # 1,500 decisions, 1 repeat
+    .venv/bin/python bench/train_loop.py --vec-only # only loop, vec, sb3_vec (N = 2 against N = 1)
 
 Only APIs that also existed before the issue-11 changes are used, so the same script measures
 an older checkout (run it from that checkout's directory).
@@ -92,6 +102,32 @@ def default_loop_uses_worker(evaluate: bool = False) -> bool:
     full = load_experiment_config(RING_YAML, {} if evaluate else {"train.eval_interval": 0})
     return use_env_process(full.train.env_process, full.env.id, evaluator_process=evaluate,
                            total_steps=full.train.total_steps)
+
+
+def has_num_envs() -> bool:
+    """Whether this checkout's runner has ``train.num_envs`` (several env workers)."""
+    return "num_envs" in {f.name for f in dataclasses.fields(TrainConfig)}
+
+
+def with_num_envs(cfg: ExperimentConfig, n: int) -> ExperimentConfig:
+    return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, num_envs=n))
+
+
+def task_settings(cfg: ExperimentConfig) -> dict[str, Any]:
+    """What the loops train on (stated in the output, so a number is read against its task)."""
+    scenario = dict(cfg.env.kwargs.get("scenario", {}))
+    keep = ("step_length", "decision_interval", "max_episode_steps", "commit_on_success", "ring_rebuild_every",
+            "settle_time")
+    return {
+        "env": cfg.env.id,
+        "scenario": {k: scenario[k] for k in keep if k in scenario},
+        "replay": f"{cfg.replay.kind} lam {cfg.replay.lam}" if cfg.replay.kind == "der" else cfg.replay.kind,
+        "batch_size": cfg.agent.batch_size,
+        "hidden_sizes": list(cfg.agent.hidden_sizes),
+        "gradient_steps_per_decision": cfg.agent.gradient_steps,
+        "learning_starts": cfg.agent.learning_starts,
+        "decisions_per_loop": cfg.train.total_steps,
+    }
 
 
 def ring_config(steps: int, evaluate: bool = False, env_process: bool | None = None) -> ExperimentConfig:
@@ -240,11 +276,68 @@ def sb3_loop(cfg: ExperimentConfig) -> tuple[float, float, float]:
     return (steps - s1) / (t_end - t1), (steps - s1) / (c_end - c1), steps / (t_end - t0)
 
 
+def sb3_vec_loop(cfg: ExperimentConfig, n_envs: int) -> float:
+    """Decisions per second after learning starts (wall) of SB3's DQN on a ``SubprocVecEnv`` of ``n_envs``
+    envs (one gradient step per decision collected: ``gradient_steps=-1``)."""
+    import functools
+
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    a, steps = cfg.agent, cfg.train.total_steps
+
+    class Clock(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.start: tuple[float, int] | None = None
+
+        def _on_step(self) -> bool:
+            if self.start is None and self.num_timesteps >= a.learning_starts:
+                self.start = (time.perf_counter(), self.num_timesteps)
+            return True
+
+    env = SubprocVecEnv([functools.partial(make_env_from_config, cfg.env, cfg.train.seed + k) for k in range(n_envs)])
+    try:
+        model = DQN(
+            "MlpPolicy",
+            env,
+            learning_rate=a.lr,
+            buffer_size=cfg.replay.capacity,
+            learning_starts=a.learning_starts,
+            batch_size=a.batch_size,
+            tau=a.tau,
+            gamma=a.gamma,
+            train_freq=a.train_freq,
+            gradient_steps=-1,
+            target_update_interval=a.target_update_interval,
+            exploration_fraction=min(1.0, a.epsilon_decay_steps / steps),
+            exploration_initial_eps=a.epsilon_start,
+            exploration_final_eps=a.epsilon_end,
+            max_grad_norm=a.max_grad_norm,
+            policy_kwargs={"net_arch": list(a.hidden_sizes)},
+            seed=cfg.train.seed,
+            device="cpu",
+            verbose=0,
+        )
+        clock = Clock()
+        model.learn(total_timesteps=steps, callback=clock)
+        t_end = time.perf_counter()
+        done = model.num_timesteps
+    finally:
+        env.close()
+    assert clock.start is not None
+    t1, s1 = clock.start
+    return (done - s1) / (t_end - t1)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1,500 decisions per loop, 1 repeat")
     parser.add_argument("--steps", type=int, default=None, help="decisions per training loop (default 4,000)")
     parser.add_argument("--repeats", type=int, default=None, help="rounds of every part (default 3)")
+    parser.add_argument("--vec-only", action="store_true",
+                        help="only our loop with N = 1 and N = 2 env workers, and SB3 with SubprocVecEnv of 1 and 2")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     steps = args.steps or (1_500 if args.quick else 4_000)
@@ -268,6 +361,33 @@ def main() -> int:
     def keep(table: dict[str, float], name: str, value: float) -> None:
         table[name] = max(table.get(name, 0.0), value)
 
+    vec = has_num_envs()
+    if args.vec_only:
+        if not vec:
+            parser.error("--vec-only: this checkout has no train.num_envs")
+        vec_rounds: list[dict[str, float]] = []
+        for r in range(repeats):
+            one = our_loop(cfg)[4]  # the training rate: first to last episode end after learning starts
+            run_two = our_loop(with_num_envs(cfg, 2))
+            two, two_cpu = run_two[4], run_two[1]
+            sb3_one, sb3_two = sb3_vec_loop(cfg, 1), sb3_vec_loop(cfg, 2)
+            vec_rounds.append({"loop": one, "vec": two, "sb3_vec1": sb3_one, "sb3_vec2": sb3_two, "vec_per_trainer_cpu_s": two_cpu})
+            print(f"repeat {r + 1}/{repeats}: loop N=1 {one:.0f}  N=2 {two:.0f} ({two / one:.2f}x)  SB3 SubprocVecEnv 1 "
+                  f"{sb3_one:.0f}  2 {sb3_two:.0f} ({sb3_two / sb3_one:.2f}x)", file=sys.stderr, flush=True)
+        med = lambda key: round(float(np.median([v[key] for v in vec_rounds])), 3)  # noqa: E731
+        print(json.dumps({
+            "bench": "train_loop", "parts": "vec-only", "task": task_settings(cfg), "repeats": repeats,
+            "loop_per_s": round(max(v["loop"] for v in vec_rounds), 1),
+            "vec_loop_per_s": round(max(v["vec"] for v in vec_rounds), 1),
+            "vec_speedup": round(float(np.median([v["vec"] / v["loop"] for v in vec_rounds])), 3),
+            "sb3_vec1_per_s": round(max(v["sb3_vec1"] for v in vec_rounds), 1),
+            "sb3_vec2_per_s": round(max(v["sb3_vec2"] for v in vec_rounds), 1),
+            "sb3_vec_speedup": round(float(np.median([v["sb3_vec2"] / v["sb3_vec1"] for v in vec_rounds])), 3),
+            "rounds": [{k: round(x, 1) for k, x in v.items()} for v in vec_rounds],
+            "median_loop_per_s": med("loop"), "torch_threads": torch.get_num_threads(),
+        }))
+        return 0
+
     for r in range(repeats):
         env_ps, env_cpu, resets, transitions = env_alone(cfg, steps)
         keep(best, "env", env_ps)
@@ -286,18 +406,26 @@ def main() -> int:
         _, _, _, _, loop_eval, eval_tail = our_loop(eval_cfg)
         keep(best, "loop_eval", loop_eval)
         waits.append(eval_tail - loop_tail)
+        if vec:
+            vec_ps = our_loop(with_num_envs(cfg, 2))[4]  # the training rate, as loop_training
+            keep(best, "vec", vec_ps)
+            sb3_vec1, sb3_vec2 = sb3_vec_loop(cfg, 1), sb3_vec_loop(cfg, 2)
+            keep(best, "sb3_vec1", sb3_vec1)
+            keep(best, "sb3_vec2", sb3_vec2)
         sb3, sb3_cpu, sb3_whole = sb3_loop(cfg)
         keep(best, "sb3", sb3)
         keep(cpu, "sb3", sb3_cpu)
         keep(whole, "sb3", sb3_whole)
         rounds.append({"env": env_ps, "learner": learner_ps, "loop": loop, "loop_training": loop_training,
                        "loop_eval": loop_eval, "sequential": sequential, "sequential_training": sequential_training, "sb3": sb3, "env_cpu": env_cpu,
-                       "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu})  # fmt: skip
+                       "learner_cpu": learner_cpu, "loop_cpu": loop_cpu, "sb3_cpu": sb3_cpu,
+                       **({"vec": vec_ps, "sb3_vec1": sb3_vec1, "sb3_vec2": sb3_vec2} if vec else {})})  # fmt: skip
         print(
             f"repeat {r + 1}/{repeats} (per wall s / per CPU s): env {env_ps:.0f} / {env_cpu:.0f} "
             f"(reset p50 {1e3 * float(np.median(resets)):.2f} ms over {len(resets)})  learner {learner_ps:.0f} / "
             f"{learner_cpu:.0f}  loop {loop:.0f} / {loop_cpu:.0f}  sequential {sequential:.0f}  loop+eval {loop_eval:.0f}  "
-            f"sb3 {sb3:.0f} / {sb3_cpu:.0f}",
+            f"sb3 {sb3:.0f} / {sb3_cpu:.0f}"
+            + (f"  N=2 {vec_ps:.0f} ({vec_ps / loop:.2f}x)  sb3 SubprocVecEnv 1 {sb3_vec1:.0f} 2 {sb3_vec2:.0f}" if vec else ""),
             file=sys.stderr,
             flush=True,
         )
@@ -344,7 +472,16 @@ def main() -> int:
         "sb3_whole_run_per_s": round(whole["sb3"], 1),
         "episodes_per_loop": episodes,
         "torch_threads": torch.get_num_threads(),
+        "task": task_settings(cfg),
     }
+    if vec:
+        result.update({
+            "vec_loop_per_s": round(best["vec"], 1),
+            "vec_speedup": paired("vec", lambda r: r["loop_training"]),
+            "sb3_vec1_per_s": round(best["sb3_vec1"], 1),
+            "sb3_vec2_per_s": round(best["sb3_vec2"], 1),
+            "sb3_vec_speedup": paired("sb3_vec2", lambda r: r["sb3_vec1"]),
+        })
     print(json.dumps(result))
     return 0
 

@@ -171,7 +171,8 @@ class _Loader(yaml.SafeLoader):
                                   f"{self.max_scalar}")
         if node.tag == _TAG + "int" and len(node.value) > 4000:
             raise self.fail(line, f"an integer of {len(node.value)} digits; expected a number a program can use")
-        if node.tag == _TAG + "float" and "inf" not in node.value.lower() and math.isinf(float(node.value)):
+        if (node.tag == _TAG + "float" and not node.value.lower().endswith((".inf", ".nan"))
+                and math.isinf(float(node.value))):
             raise self.fail(line, f"{excerpt(node.value)} is beyond the float range (it would be read as inf)")
         if not is_key and node.style is None and _AMBIGUOUS.match(node.value):
             raise self.fail(line, f"{excerpt(node.value)} means something else in YAML 1.1 than in YAML 1.2; quote "

@@ -229,6 +229,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._rng: np.random.Generator | None = None
         self._ctx_range = cfg.observation.neighbour_range + 15.0
         self._lane_counts: dict[str, int] = {}
+        self._edge_lengths: dict[str, float] = {}  # commit fast-forward: lane length and fastest lane per edge
+        self._edge_speeds: dict[str, float] = {}
         self._offsets: dict[str, float] = {}
         self._loop_length = 0.0
         self._closed_corridor = cfg.network == "ring"
@@ -394,13 +396,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         if self._commit and self._target_reached and not (terminated or truncated):
             # the authors' commit structure: the rest of the horizon runs inside this transition (no-op
             # decisions, the ego held on the target lane) and its speed rewards are summed into it
-            committed = 0
-            while not (terminated or truncated):
-                r, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(0)
-                reward += r
-                committed += 1
+            reward, terminated, truncated, event, caused, mean_speed, ego_gone = self._commit_rest(reward)
             terminated, truncated = True, False  # the remainder is in the reward: nothing to bootstrap
-            self._committed_steps = committed
         self._done = terminated or truncated
         if ego_gone:
             self._ego_present = False
@@ -412,10 +409,23 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         return obs, float(reward), terminated, truncated, info
 
     def _advance(self, a: int) -> tuple[float, bool, bool, str | None, bool, float, bool]:
-        """One decision: apply action ``a``, run ``decision_interval`` SUMO steps, score them.
+        """One decision: apply action ``a``, run ``decision_interval`` SUMO steps, read the neighbours
+        (points and observation), score the decision.
 
         Returns (reward, terminated, truncated, event, caused, mean speed, ego gone).
         """
+        collided = self._simulate_decision(a)
+        ctx = self.api.vehicle.getContextSubscriptionResults(self.ego_id)
+        ego_gone = not ctx or self.ego_id not in ctx
+        if not ego_gone:
+            self._points_from_context(ctx)
+        mean_speed = self._mean_speed()
+        return self._score(collided, ego_gone, mean_speed)
+
+    def _simulate_decision(self, a: int) -> bool:
+        """Apply action ``a`` and run ``decision_interval`` SUMO steps (fewer if the ego collides).
+
+        True if the ego was in a collision (as collider or victim) in the last step run."""
         cfg, api = self.config, self.api
         if a >= 3:
             self._speed_action(a)
@@ -437,11 +447,13 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
                 if collided:
                     break
         self._episode_step += 1
-        ctx = api.vehicle.getContextSubscriptionResults(self.ego_id)
-        ego_gone = not ctx or self.ego_id not in ctx
-        if not ego_gone:
-            self._points_from_context(ctx)
-        mean_speed = self._mean_speed()
+        return collided
+
+    def _score(self, collided: bool, ego_gone: bool, mean_speed: float) -> tuple[float, bool, bool, str | None, bool, float, bool]:
+        """Reward and outcome of the decision just simulated (section 5.1; see the module docstring).
+
+        Returns (reward, terminated, truncated, event, caused, mean speed, ego gone)."""
+        cfg = self.config
         reward = math.log(max(mean_speed, cfg.min_speed))
         terminated = truncated = False
         event: str | None = None
@@ -473,6 +485,140 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         if not terminated and (ego_gone or self._episode_step >= cfg.max_episode_steps):
             truncated, event = True, ("success" if self._target_reached else "time_limit")
         return reward, terminated, truncated, event, caused, mean_speed, ego_gone
+
+    # ------------------------------------------------------------------ commit fast-forward
+    def _commit_rest(self, reward: float) -> tuple[float, bool, bool, str | None, bool, float, bool]:
+        """The rest of the horizon after a committed change, with the least work per SUMO step.
+
+        The same decisions as repeated ``_advance(0)`` (no-op actions), bit for bit, but the ego's
+        context subscription -- SUMO evaluates it at every simulation step, ~15-20% of a ring step
+        with its lane filter -- is dropped while nothing reads it, and no observation is built in
+        between: a decision here is ``decision_interval`` SUMO steps, the per-step collision count
+        of the simulation subscription and one read of every vehicle's speed for the reward (on
+        libsumo by getters once per decision, the per-vehicle speed subscriptions dropped meanwhile:
+        SUMO would evaluate them at every step; on traci, where a getter is a round trip, the
+        subscriptions stay).
+        When the episode ends, the subscriptions are made again and evaluated on the current
+        state without a simulation step (``simulationStep(now)`` re-evaluates every subscription),
+        so the last observation is the one the full decisions would have built.
+
+        The ego must not leave the network inside a fast decision (the full path would then keep
+        the observation of the decision before, which no longer exists): ``_commit_fast_decisions``
+        bounds how far the ego can drive (computed again from the ego's position when the bound runs
+        out), and the decisions beyond it run in full.
+
+        ``reward`` is the committing decision's reward; the remaining decisions' rewards are added
+        to it one by one in order, as the full path did. Returns what ``_advance`` returns.
+        """
+        api = self.api
+        ego = self.ego_id
+        fast = self._commit_fast_decisions()
+        detached = fast > 0
+        getters = detached and self._sim is not None and self._sim.backend == "libsumo" and self._scene is None
+        vehicle = api.vehicle
+        if detached:
+            vehicle.unsubscribeContext(ego, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range)
+        if getters:  # libsumo: a getter is a C++ call, cheaper once per decision than a subscription every step
+            for vid in vehicle.getIDList():
+                vehicle.unsubscribe(vid)
+        get_ids, get_speed, fsum = vehicle.getIDList, vehicle.getSpeed, math.fsum
+        committed = 0
+        while True:
+            if detached and committed == fast > 0:  # the bound ran out: again from where the ego really is
+                fast += self._commit_fast_decisions()
+            if committed < fast:
+                collided = self._simulate_decision(0)
+                if getters:  # the same speeds, summed exactly: the same mean as _mean_speed's
+                    ids = get_ids()
+                    mean_speed = fsum(map(get_speed, ids)) / len(ids) if ids else 0.0
+                    ego_gone = ego not in ids
+                else:
+                    mean_speed = self._mean_speed()
+                    ego_gone = ego not in self._vehicle_results  # type: ignore[operator]
+                if ego_gone:  # excluded by the bound; the observation stays the one before the commit
+                    log.warning("commit: ego %r left the network inside a fast decision", ego)
+                r, terminated, truncated, event, caused, mean_speed, ego_gone = self._score(collided, ego_gone, mean_speed)
+            else:
+                if detached:  # the rest runs in full
+                    self._attach(getters, context=True)
+                    detached = getters = False
+                r, terminated, truncated, event, caused, mean_speed, ego_gone = self._advance(0)
+            reward += r
+            committed += 1
+            if terminated or truncated:
+                break
+        if detached:
+            self._attach(getters, context=not ego_gone)
+            if not ego_gone:
+                self._points_from_context(vehicle.getContextSubscriptionResults(ego))
+        self._committed_steps = committed
+        return reward, terminated, truncated, event, caused, mean_speed, ego_gone
+
+    def _attach(self, speeds: bool, context: bool) -> None:
+        """Subscribe again what the fast decisions dropped -- every vehicle's speed (``speeds``), the ego's
+        context (``context``, as ``_subscribe_ego``) -- and evaluate the subscriptions now, without a step.
+
+        ``simulationStep(t)`` with ``t`` the current time runs no simulation step but evaluates every
+        subscription, so the lane filter applies (a fresh subscription alone answers unfiltered)."""
+        api = self.api
+        vehicle = api.vehicle
+        if speeds:
+            for vid in vehicle.getIDList():
+                vehicle.subscribe(vid, self._vehicle_vars)
+        if context:
+            vehicle.subscribeContext(self.ego_id, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range, _CTX_VARS)
+            vehicle.addSubscriptionFilterLanes(
+                [-1, 0, 1], noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+            )
+        if not (speeds or context):
+            return
+        now = api.simulation.getTime()
+        if now <= 0.0:  # time 0 would mean "one step"; a reset always leaves time > 0
+            raise RuntimeError(f"commit fast-forward at simulation time {now}: expected a time after the reset's warm-up")
+        api.simulationStep(now)
+        if speeds:  # what scene() reads (the old results hold no vehicle that departed meanwhile)
+            self._vehicle_results = vehicle.getAllSubscriptionResults()
+
+    def _commit_fast_decisions(self) -> int:
+        """How many of the remaining decisions can run fast: all, unless the ego could reach the end
+        of its route (and leave the network) before the horizon.
+
+        A lower bound on the distance left (the edges after the current one, without the last, whose
+        arrival position is not read) against an upper bound on the distance driven (the ego's speed
+        cap: its type's maximum speed and, with its speed factor, the fastest lane of its route)."""
+        cfg, api = self.config, self.api
+        remaining = cfg.max_episode_steps - self._episode_step
+        if remaining <= 0:
+            return 0
+        v = api.vehicle
+        route = v.getRoute(self.ego_id)
+        idx = v.getRouteIndex(self.ego_id)
+        if idx < 0:
+            return 0
+        left = 0.0
+        for edge in route[idx + 1 : -1]:
+            left += self._edge_length(edge)
+        vmax = min(v.getMaxSpeed(self.ego_id), v.getSpeedFactor(self.ego_id) * self._max_lane_speed(route[idx:]))
+        vmax = 1.1 * max(vmax, v.getSpeed(self.ego_id)) + 1.0  # margin
+        per_decision = vmax * cfg.decision_interval * cfg.step_length
+        safe = int(left // per_decision) - 1
+        return max(0, min(remaining, safe))
+
+    def _edge_length(self, edge: str) -> float:
+        n = self._edge_lengths.get(edge)
+        if n is None:
+            n = self._edge_lengths[edge] = float(self.api.lane.getLength(f"{edge}_0"))
+        return n
+
+    def _max_lane_speed(self, edges: Any) -> float:
+        best = 0.0
+        for edge in edges:
+            m = self._edge_speeds.get(edge)
+            if m is None:
+                m = max(float(self.api.lane.getMaxSpeed(f"{edge}_{k}")) for k in range(self._lane_count(edge)))
+                self._edge_speeds[edge] = m
+            best = max(best, m)
+        return best
 
     # ------------------------------------------------------------------ state reading
     def _sim_step(self) -> None:

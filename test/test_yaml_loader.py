@@ -232,3 +232,12 @@ def test_der_train_refuses_a_repeated_section_before_training(tmp_path, capsys):
     assert capsys.readouterr().err.strip() == (
         f"der train: configuration error: {path}: line {last}: key 'agent': duplicate key (first at line {first})")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("text", "check"), [(".nan", math.isnan), (".NaN", math.isnan), ("-.inf", lambda v: v == -math.inf),
+                                             (".inf", lambda v: v == math.inf)])  # fmt: skip
+def test_yaml_special_floats_load_as_floats(text: str, check) -> None:
+    """``.nan`` / ``.inf`` are YAML's float spellings: loaded as floats, so the config check can name them
+    (``lam = nan, expected a finite number``) instead of a parser error."""
+    value = load_yaml_text(f"x: {text}\n", "t.yaml")["x"]
+    assert isinstance(value, float) and check(value)

@@ -26,6 +26,9 @@ from der_ros.replay.config import ReplayConfig
 from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 from der_ros.safety.config import SafetyConfig
 
+#: upper bound of train.num_envs: a process and a simulation each; more than this is a typo, not a machine
+MAX_NUM_ENVS = 64
+
 __all__ = [
     "EnvConfig",
     "TrainConfig",
@@ -107,6 +110,15 @@ class TrainConfig:
         "5,000 steps or more, off otherwise; "
         "False: act, step, observe, learn in turn in this process",
     )
+    num_envs: int = param(
+        1,
+        "environment workers feeding the one learner, one process each, one gradient step per decision overall "
+        "(der_ros/train/env_pool.py). 1 (default): one environment, the loop and results of before. N > 1: worker j's "
+        "env seeded from train.seed and j, transitions learnt round robin, actions from the network of up to 32 "
+        "rounds ago; more decisions per wall second, the same replay ratio, a different (deterministic) run",
+        low=1,
+        high=MAX_NUM_ENVS,
+    )
     run_dir: str | None = param(None, "output folder; None = runs/<env>-<replay>-<seed>-<timestamp> under runs_root")
     runs_root: str = param("runs", "parent folder of generated run directories")
     log_interval: int = param(
@@ -180,6 +192,16 @@ def experiment_from_dict(data: dict[str, Any] | None, source: str = "config") ->
         raise ConfigError(f"{source} [agent]: batch_size = {agent.batch_size}, expected <= replay.capacity "
                           f"({replay.capacity})", key="agent.batch_size", value=agent.batch_size,
                           reason=f"expected <= replay.capacity ({replay.capacity})")
+    train = parts["train"]
+    if train.num_envs > 1 and train.env_process is False:
+        raise ConfigError(f"{source} [train]: num_envs = {train.num_envs} runs each env in a worker process, "
+                          "expected env_process unset or true", key="train.num_envs", value=train.num_envs,
+                          reason="expected env_process unset or true")
+    env = parts["env"]
+    if train.num_envs > 1 and env.safety.enabled:  # the pool's workers would store the proposal, not the applied action
+        raise ConfigError(f"{source} [train]: num_envs = {train.num_envs} with env.safety.kind = "
+                          f"{env.safety.kind!r}: the shield runs with one environment (num_envs 1) only",
+                          key="train.num_envs", value=train.num_envs, reason="expected 1 with a shield")
     return ExperimentConfig(**parts)
 
 

@@ -90,7 +90,7 @@ def _wait(conn: Any, spin: float = SPIN_SECONDS) -> None:
             return
 
 
-def _serve(conn: Any, env_cfg: Any, seed: int) -> None:
+def _serve(conn: Any, env_cfg: Any, seed: int, spin: float = SPIN_SECONDS) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     env = None
     try:
@@ -102,7 +102,7 @@ def _serve(conn: Any, env_cfg: Any, seed: int) -> None:
             return
         while True:
             try:
-                _wait(conn)
+                _wait(conn, spin)
                 msg = conn.recv()
             except EOFError:  # the trainer is gone
                 return
@@ -136,13 +136,17 @@ class EnvProcess:
     """A gymnasium-like handle on an environment in a worker process (``step`` split into
     :meth:`step_async` and :meth:`step_wait`, so the caller works in between)."""
 
-    def __init__(self, env_cfg: Any, seed: int) -> None:
+    def __init__(self, env_cfg: Any, seed: int, spin: float = SPIN_SECONDS) -> None:
+        """``spin``: seconds each side polls the pipe before it blocks (:data:`SPIN_SECONDS`; 0 = block at
+        once, for several workers sharing the cores: :mod:`der_ros.train.env_pool`)."""
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, env_cfg, seed), daemon=True, name="der-env")
+        self._spin = float(spin)
+        self._proc = ctx.Process(target=_serve, args=(child, env_cfg, seed, self._spin), daemon=True, name="der-env")
         self._proc.start()
         child.close()
         self._closed = False
+        self._close_sent = False
         self._waiting = False
         try:
             self.observation_space, self.action_space = self._answer()
@@ -152,11 +156,10 @@ class EnvProcess:
 
     def _answer(self) -> Any:
         try:
-            _wait(self._conn)
+            _wait(self._conn, self._spin)
             kind, payload = self._conn.recv()
-        except EOFError:
-            self._proc.join(timeout=5)
-            raise RuntimeError(f"the environment process died (exit code {self._proc.exitcode})") from None
+        except (EOFError, ConnectionError):
+            raise self._died() from None
         if kind == "error":
             name, text = payload
             if name in ("ConfigError", "ScenarioFileError"):  # a refused config stays a ConfigError (exit 2)
@@ -164,10 +167,20 @@ class EnvProcess:
             raise RuntimeError(f"in the environment process: {name}: {text}")
         return payload
 
+    def _died(self) -> RuntimeError:
+        self._proc.join(timeout=5)
+        return RuntimeError(f"the environment process died (exit code {self._proc.exitcode})")
+
+    def _send(self, msg: tuple[Any, ...]) -> None:
+        try:
+            self._conn.send(msg)
+        except (BrokenPipeError, ConnectionError):
+            raise self._died() from None
+
     def _call(self, *msg: Any) -> Any:
         if self._waiting:
             raise RuntimeError("env process: step_wait() was not called after step_async()")
-        self._conn.send(msg)
+        self._send(msg)
         return self._answer()
 
     def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -177,7 +190,7 @@ class EnvProcess:
         """Start one step; :meth:`step_wait` returns its result."""
         if self._waiting:
             raise RuntimeError("env process: step_async() called twice without step_wait()")
-        self._conn.send(("step", action))
+        self._send(("step", action))
         self._waiting = True
 
     def step_wait(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any], Any]:
@@ -196,22 +209,36 @@ class EnvProcess:
         """Replace the worker's environment with an unpickled one (a resumed checkpoint)."""
         self._call("load", data)
 
-    def close(self) -> None:
-        if self._closed:
+    def request_close(self) -> None:
+        """Ask the worker to close its env and exit, without waiting (:meth:`close` then waits): several
+        workers shut down side by side."""
+        if self._closed or self._close_sent:
             return
-        self._closed = True
+        self._close_sent = True
         try:
             if self._waiting and self._conn.poll(30):  # a step still out (the trainer failed meanwhile)
                 self._conn.recv()
+                self._waiting = False
             if self._proc.is_alive():
                 self._conn.send(("close",))
         except (BrokenPipeError, EOFError, OSError):
             pass
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self.request_close()
+        self._closed = True
         self._proc.join(timeout=30)
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(timeout=5)
         self._conn.close()
+
+    @property
+    def connection(self) -> Any:
+        """The trainer's end of the pipe (for ``multiprocessing.connection.wait`` over several workers)."""
+        return self._conn
 
     @property
     def pid(self) -> int | None:

@@ -1,7 +1,8 @@
 """The training loop behind ``der train`` (and each run of the experiment suites).
 
-One process, one environment, one :class:`DQNAgent` driven through its step-wise API. Writes a
-run directory::
+One learner, :class:`DQNAgent`, driven through its step-wise API; one environment (in this process or
+in a worker, :mod:`der_ros.train.env_process`), or ``train.num_envs`` workers feeding it
+(:mod:`der_ros.train.env_pool`). Writes a run directory::
 
     config.yaml     the resolved four-section config (rerun with `der train --config` on it)
     metrics.csv     step,wall_time,name,value (averaged over train.log_interval env steps)
@@ -41,6 +42,7 @@ from der_ros.agent.dqn import DQNAgent, resolve_device
 from der_ros.safety.apply import replace_unsafe
 from der_ros.safety.wrapper import target_mask_for
 from der_ros.train.config import ExperimentConfig, save_experiment_config
+from der_ros.train.env_pool import EnvPool
 from der_ros.train.env_process import EnvProcess, use_env_process
 from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
 from der_ros.train.evaluation import (
@@ -247,9 +249,15 @@ def _train(
     # (auto decides on the whole run's length, the same when it is resumed)
     in_worker = use_env_process(t_cfg.env_process, cfg.env.id, evaluator_process=eval_process,
                                 total_steps=t_cfg.total_steps)
-    env: Any = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
-    log.info("environment %s (train.env_process = %s)", "in a worker process, stepping while the learner updates"
-             if in_worker else "in this process", "auto" if t_cfg.env_process is None else t_cfg.env_process)
+    pool: EnvPool | None = None
+    env: Any
+    if t_cfg.num_envs > 1:  # N workers, one learner (module env_pool)
+        env = pool = EnvPool(cfg.env, t_cfg.seed, t_cfg.num_envs)
+        log.info("environment: %d worker processes feeding the learner (train.num_envs)", t_cfg.num_envs)
+    else:
+        env = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
+        log.info("environment %s (train.env_process = %s)", "in a worker process, stepping while the learner updates"
+                 if in_worker else "in this process", "auto" if t_cfg.env_process is None else t_cfg.env_process)
     cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
     obs_shape, obs_dtype = obs_spec(env)
     n_actions = int(env.action_space.n)
@@ -279,7 +287,12 @@ def _train(
         last_return = returns[-1] if returns else None
         wall_offset = float(runner["wall_time"])
         acc.load_state_dict(runner["accumulator"])
-        if point.env_bytes is not None:
+        if pool is not None:
+            state = runner.get("pool")
+            if state is None or not pool.load_state_dict(state, agent, t_cfg.total_steps):
+                pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
+            obs = pool.workers[0].obs
+        elif point.env_bytes is not None:
             if isinstance(env, EnvProcess):
                 env.load(point.env_bytes)
             else:
@@ -291,9 +304,16 @@ def _train(
         log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
     elif point is not None:  # der graph's agent node: same learner, a new episode in this env
         resume_step = agent.steps
-        obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+        if pool is not None:
+            pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
+            obs = pool.workers[0].obs
+        else:
+            obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
         log.info("resumed the agent node's learner from %s at step %d (%d transitions in replay); episode "
                  "counts start at 0", resume, agent.steps, len(agent.replay))
+    elif pool is not None:
+        pool.start(agent, t_cfg.total_steps)
+        obs = pool.workers[0].obs
     else:
         obs, start_info = env.reset(seed=t_cfg.seed)
     # the shield (env.safety, docs/safety.md): the verdict on ``obs``; the learner stores the applied action
@@ -365,8 +385,9 @@ def _train(
                 "wall_time": wall(),
                 "accumulator": acc.state_dict(),
                 "obs": np.array(obs, copy=True),
+                **({"pool": pool.state_dict()} if pool is not None else {}),
             },
-            "env": env.pickled() if isinstance(env, EnvProcess) else pickle_env_state(env),
+            "env": None if pool is not None else env.pickled() if isinstance(env, EnvProcess) else pickle_env_state(env),
             "config": cfg.to_dict(),
         }
         writer.flush()
@@ -381,25 +402,31 @@ def _train(
             # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
             evaluate_now(t_cfg.eval_episodes)
         while agent.steps < t_cfg.total_steps:
-            action = agent.act(obs, mask=mask) if mask_mode else agent.act(obs)
-            applied, _ = replace_unsafe(action, mask)  # what the shield wrapper will apply (itself if no shield)
-            if overlap:  # the gradient step runs while the worker simulates (module env_process)
-                env.step_async(action)
-                agent.observe_deferred(obs, applied, step_result.complete)
-                metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
-                agent.replay.resolve_deferred()
-                next_obs, reward, terminated, truncated, info, reset = step_result.take()
-            else:
-                next_obs, reward, terminated, truncated, info = env.step(action)
-                agent.observe(obs, applied, float(reward), next_obs, bool(terminated), bool(truncated))
+            if pool is not None:  # the next transition in the pool's fixed order; the workers simulate meanwhile
+                obs, action, reward, next_obs, terminated, truncated, info, reset = pool.next_transition(agent)
+                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
                 metrics = agent.learn()
+                pool.learnt_one(agent)
+            else:
+                action = agent.act(obs, mask=mask) if mask_mode else agent.act(obs)
+                applied, _ = replace_unsafe(action, mask)  # what the shield wrapper will apply (itself if no shield)
+                if overlap:  # the gradient step runs while the worker simulates (module env_process)
+                    env.step_async(action)
+                    agent.observe_deferred(obs, applied, step_result.complete)
+                    metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
+                    agent.replay.resolve_deferred()
+                    next_obs, reward, terminated, truncated, info, reset = step_result.take()
+                else:
+                    next_obs, reward, terminated, truncated, info = env.step(action)
+                    agent.observe(obs, applied, float(reward), next_obs, bool(terminated), bool(truncated))
+                    metrics = agent.learn()
             if metrics:
                 acc.add(metrics)
             if "episode" in info:
                 record_episode(info)
             mask = info.get("action_mask")
             if terminated or truncated:
-                next_obs, reset_info = reset if overlap else env.reset()
+                next_obs, reset_info = reset if overlap or pool is not None else env.reset()
                 mask = reset_info.get("action_mask")
                 if "episode" in reset_info:
                     record_episode(reset_info)

@@ -1,0 +1,147 @@
+"""``train.num_envs``: N env workers feeding one learner (der_ros/train/env_pool.py).
+
+Pinned here: N = 1 is the loop of before (same episodes, losses and weights as a config without the
+field); N = 2 is deterministic for a seed, learns from both workers, one gradient step per transition;
+it resumes exactly (a finished half, and a Ctrl-C); a killed worker stops the run with an error naming
+it and leaves no process behind; bad values are refused with one line naming the field."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+import torch
+from test_train import CARTPOLE, read_csv, small_overrides
+
+from der_ros import cli
+from der_ros.agent.dqn import DQNAgent, read_checkpoint
+from der_ros.configuration import ConfigError
+from der_ros.train.config import load_experiment_config
+from der_ros.train.env_pool import worker_seed
+from der_ros.train.evaluation import TRAINING_SEED_LIMIT
+from der_ros.train.runner import train
+
+
+def episodes(run: Path) -> list[tuple[str, ...]]:
+    return [(r["episode"], r["step"], r["return"], r["length"]) for r in read_csv(run / "episodes.csv")]
+
+
+def losses(run: Path) -> list[str]:
+    return [r["value"] for r in read_csv(run / "metrics.csv") if r["name"] == "losses/td_loss"]
+
+
+def same_weights(a: Path, b: Path) -> bool:
+    x, y = DQNAgent.load(a / "checkpoint.pt"), DQNAgent.load(b / "checkpoint.pt")
+    return all(torch.equal(p, q) for p, q in zip(x.q_net.parameters(), y.q_net.parameters()))
+
+
+def run(tmp_path: Path, name: str, steps: int, **extra: object) -> Path:
+    cfg = load_experiment_config(CARTPOLE, small_overrides(steps, **extra))
+    assert train(cfg, run_dir=tmp_path / name).steps == steps
+    return tmp_path / name
+
+
+def live_children() -> list[psutil.Process]:
+    """Child processes still running, but multiprocessing's resource tracker (one per parent, kept)."""
+    return [p for p in psutil.Process().children(recursive=True) if p.is_running()
+            and p.status() != psutil.STATUS_ZOMBIE and "resource_tracker" not in " ".join(p.cmdline())]  # fmt: skip
+
+
+@pytest.mark.parametrize("loop", [{"train.env_process": False}, {"train.env_process": True}], ids=["sequential", "worker"])
+def test_one_env_is_the_loop_of_before(tmp_path: Path, loop: dict) -> None:
+    default = run(tmp_path, "default", 400, **loop)
+    one = run(tmp_path, "one", 400, **{"train.num_envs": 1}, **loop)
+    assert load_experiment_config(CARTPOLE).train.num_envs == 1
+    assert len(episodes(one)) > 10 and episodes(one) == episodes(default)
+    assert losses(one) and losses(one) == losses(default)
+    assert same_weights(one, default)
+
+
+def test_two_envs_are_deterministic_and_learn_from_both(tmp_path: Path) -> None:
+    a = run(tmp_path, "a", 600, **{"train.num_envs": 2})
+    b = run(tmp_path, "b", 600, **{"train.num_envs": 2})
+    one = run(tmp_path, "one", 600)
+    assert len(episodes(a)) > 10 and episodes(a) == episodes(b)
+    assert losses(a) and losses(a) == losses(b)
+    assert same_weights(a, b)
+    assert episodes(a) != episodes(one)  # two streams interleaved, not the one env's
+    agent = DQNAgent.load(a / "checkpoint.pt")
+    assert agent.steps == 600 and agent.grad_steps == 600 - agent.cfg.learning_starts  # one gradient step per decision
+    # both workers' streams reach the replay: two different first observations (their seeds differ)
+    state = agent.replay.state_dict()
+    stored = state["obs"] if "obs" in state else state["h1/obs"]
+    firsts = {tuple(np.asarray(stored[i]).round(6)) for i in (0, 1)}
+    assert len(firsts) == 2
+
+
+def test_two_envs_resume_exactly(tmp_path: Path) -> None:
+    """The pool's state (each worker's pickled CartPole, its observation, RNG, step count and the results
+    not yet learnt, the behaviour snapshots) goes into the checkpoint; the resumed run is the full run."""
+    full = run(tmp_path, "full", 500, **{"train.num_envs": 2})
+    half_cfg = load_experiment_config(CARTPOLE, small_overrides(250, **{"train.num_envs": 2}))
+    half = train(half_cfg, run_dir=tmp_path / "split")
+    pool = read_checkpoint(half.checkpoint)["extra"]["runner"]["pool"]
+    assert pool["num_envs"] == 2 and all(w["env"] is not None for w in pool["workers"])
+    full_cfg = load_experiment_config(CARTPOLE, small_overrides(500, **{"train.num_envs": 2}))
+    train(full_cfg, run_dir=tmp_path / "split", resume=half.checkpoint)
+    assert len(episodes(full)) > 10 and episodes(tmp_path / "split") == episodes(full)
+    assert losses(tmp_path / "split") == losses(full)
+    assert same_weights(tmp_path / "split", full)
+
+
+def test_two_envs_ctrl_c_writes_a_checkpoint_that_resumes_exactly(tmp_path: Path) -> None:
+    full = run(tmp_path, "full", 800, **{"train.num_envs": 2})
+    cfg = load_experiment_config(CARTPOLE, small_overrides(800, **{"train.num_envs": 2}))
+
+    def on_episode(episode: int, step: int, ret: float) -> None:
+        if episode == 12:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C: the workers ignore it, the trainer stops at a step
+
+    cut = train(cfg, run_dir=tmp_path / "cut", on_episode=on_episode)
+    assert cut.interrupted and 0 < cut.steps < 800 and cut.checkpoint
+    assert not live_children()
+    train(cfg, run_dir=tmp_path / "cut", resume=cut.checkpoint)
+    assert episodes(tmp_path / "cut") == episodes(full)
+    assert same_weights(tmp_path / "cut", full)
+
+
+def test_a_killed_worker_stops_the_run_with_an_error_naming_it(tmp_path: Path) -> None:
+    cfg = load_experiment_config(CARTPOLE, small_overrides(5000, **{"train.num_envs": 2}))
+    killed: list[int] = []
+
+    def on_episode(episode: int, step: int, ret: float) -> None:
+        if episode == 3 and not killed:
+            workers = sorted(p.pid for p in live_children())
+            assert len(workers) >= 2
+            os.kill(workers[1], signal.SIGKILL)
+            killed.append(workers[1])
+
+    with pytest.raises(RuntimeError, match=r"env worker [01] of 2 \(pid \d+\).*died \(exit code -9\)"):
+        train(cfg, run_dir=tmp_path / "run", on_episode=on_episode)
+    assert killed
+    assert not live_children()
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "65", "1000", "two"])
+def test_bad_num_envs_is_refused_with_one_line_naming_it(tmp_path: Path, value: str, capsys) -> None:
+    run_dir = tmp_path / "run"
+    code = cli.main(["train", "--config", str(CARTPOLE), "--set", f"train.num_envs={value}", "--run-dir", str(run_dir)])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "num_envs = " in err and value in err, err
+    assert not run_dir.exists()
+    with pytest.raises(ConfigError, match="num_envs"):
+        load_experiment_config(CARTPOLE, {"train.num_envs": 2, "train.env_process": False})
+
+
+def test_worker_seeds_come_from_the_run_seed_and_stay_training_seeds() -> None:
+    for run_seed in (0, 7, 999_999_999):
+        seeds = [worker_seed(run_seed, j) for j in range(64)]
+        assert seeds[0] == run_seed and len(set(seeds)) == 64
+        assert all(0 <= s < TRAINING_SEED_LIMIT for s in seeds)
+    assert [worker_seed(3, j) for j in range(4)] == [worker_seed(3, j) for j in range(4)]
+    assert worker_seed(3, 1) != worker_seed(4, 1)
