@@ -25,13 +25,15 @@ def test_der_baselines_prints_each_baselines_own_episodes(tmp_path: Path, capsys
     assert cli.main(["baselines", str(RING), "--episodes", "2", "--jobs", "2", "--out", str(tmp_path)]) == 0
     rows = [_cells(x) for x in capsys.readouterr().out.splitlines() if x.startswith("| der_ros/")]
     assert [r[1] for r in rows] == list(baselines.SUMO_BASELINES)
-    for _env_id, name, n, success, collision, time_limit, ret in rows:
+    for _env_id, name, n, success, collision, time_limit, missed, ret, interventions in rows:
         eps = json.loads((tmp_path / "ring" / name / "evaluation.json").read_text())["episodes"]
         assert int(n) == len(eps) == 2
         assert float(success) == pytest.approx(sum(e["outcome"] == "success" for e in eps) / 2)
         assert float(collision) == pytest.approx(sum(e["outcome"] == "collision" and e["caused"] for e in eps) / 2)
         assert float(time_limit) == pytest.approx(sum(e["outcome"] == "time_limit" for e in eps) / 2)
         assert float(ret) == pytest.approx(sum(e["ret"] for e in eps) / 2, abs=0.005)
+        assert float(missed) == 0.0  # the ring has no exit to miss
+        assert float(interventions) == 0.0  # no shield asked for: nothing vetoed
     keep = next(r for r in rows if r[1] == "keep")
     assert (keep[3], keep[5]) == ("0.000", "1.000")  # never changes lane: never arrives, always the time limit
 
