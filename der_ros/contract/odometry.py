@@ -12,7 +12,7 @@ import math
 import struct
 from typing import Any
 
-from der_ros.contract.cdr import U32, align, cdr_string, header_cdr, header_ns, pad, read_header_cdr
+from der_ros.contract.cdr import align, cdr_string, header_cdr, header_ns, pad, read_header_cdr
 
 __all__ = [
     "odometry_pose",

@@ -27,7 +27,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-
 from der_ros.contract.reward import APPLIED_ACTION_PREFIX
 from der_ros.yaml_loader import YamlError, load_yaml_text
 

@@ -39,10 +39,18 @@ from typing import Any
 from rclpy.node import Node
 
 from der_ros.bag.recorder_config import RecorderConfig, default_bag_path
-from der_ros.contract import tf_cdr
-from der_ros.contract import read_odometry_pose_cdr
 from der_ros.bag.writer import BagWriter, BagWriterError, jazzy_typestore
-from der_ros.contract import ODOM, SCENE_TOPICS, TF, TF_MSGTYPE, TF_QOS, QosSpec, topic_by_name
+from der_ros.contract import (
+    ODOM,
+    SCENE_TOPICS,
+    TF,
+    TF_MSGTYPE,
+    TF_QOS,
+    QosSpec,
+    read_odometry_pose_cdr,
+    tf_cdr,
+    topic_by_name,
+)
 from der_ros.contract_ros import message_class, qos_profile, qos_to_rosbag2
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node

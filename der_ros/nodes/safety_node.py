@@ -29,7 +29,6 @@ from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Joy, PointCloud2
 
-from der_ros.contract import read_state_cdr
 from der_ros.contract import (
     AGENT_COMMAND,
     COMMAND,
@@ -40,6 +39,7 @@ from der_ros.contract import (
     cloud_to_points,
     command_action,
     header_ns,
+    read_state_cdr,
 )
 from der_ros.contract_ros import topic_qos
 from der_ros.nodes import msg_conversions as mc

@@ -23,8 +23,8 @@ import yaml
 from der_ros.agent.config import DQNConfig
 from der_ros.configuration import ConfigError, from_dict, param, read_yaml_mapping, reject_unknown_keys, to_dict
 from der_ros.replay.config import ReplayConfig
-from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 from der_ros.safety.config import SafetyConfig
+from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 
 #: upper bound of train.num_envs: a process and a simulation each; more than this is a typo, not a machine
 MAX_NUM_ENVS = 64

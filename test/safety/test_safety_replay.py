@@ -9,9 +9,9 @@ import numpy as np
 from PIL import Image
 
 from der_ros import cli
+from der_ros.bag.reader import BagReader
 from der_ros.offline.episode_recording import record_episode
 from der_ros.offline.episodes import scan_bag
-from der_ros.bag.reader import BagReader
 from der_ros.offline.render import VETO, RenderOptions, caption_lines, frame_view
 from der_ros.offline.scene_frames import read_scene
 from der_ros.safety import RssChecker, SafetyConfig
