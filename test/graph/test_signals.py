@@ -64,7 +64,7 @@ def test_der_graph_started_in_the_background_stops_on_sigint(ros_domain: int, tm
     assert bag_meta(run_dir / "bag")["custom_data"][FINALIZED_KEY] == "true"
     assert (run_dir / "agent.pt").is_file()
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "bridge_node": 0}
+    assert summary["exit_codes"] == {"recorder_node": 0, "agent_node": 0, "safety_node": 0, "bridge_node": 0}
 
 
 @pytest.mark.slow
