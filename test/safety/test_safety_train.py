@@ -93,6 +93,7 @@ def test_training_stores_the_applied_action(tmp_path: Path) -> None:
     assert fractions["rss"] > 0.99  # (float32 rounding of a gap may flip a verdict at the boundary)
 
 
+@pytest.mark.slow
 def test_table3_shield_rows_and_eval_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out, results = tmp_path / "runs", tmp_path / "results"
     argv = ["table3", "--networks", "ring", "--methods", "dqn", "--seeds", "1", "--steps", "80", "--shield", "rss"]

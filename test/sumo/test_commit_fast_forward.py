@@ -166,6 +166,7 @@ def _assert_same(ref: list[Any], new: list[Any]) -> None:
         assert a == b, f"step {i} differs"
 
 
+@pytest.mark.slow
 def test_ring_commit_fast_forward_is_bit_identical() -> None:
     cfg = ScenarioConfig.ring(commit_on_success=True)
     seeds, episodes = range(40), 4
@@ -190,6 +191,7 @@ def test_ring_commit_ending_in_a_collision_and_switching_midway_are_bit_identica
         _assert_same(ref, _run(LaneChangeEnv, cfg, seeds, episodes, fast_cap=cap, monkeypatch=monkeypatch))
 
 
+@pytest.mark.slow
 def test_urban_commit_fast_forward_is_bit_identical() -> None:
     cfg = ScenarioConfig.urban(commit_on_success=True)
     seeds, episodes = range(4), 5
