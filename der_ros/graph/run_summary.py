@@ -72,32 +72,28 @@ def _plots(bag: Path, returns: list[float], out_dir: Path) -> list[Path]:
     return _fallback_plot(returns, out_dir)
 
 
-def bridge_summary(log_dir: Path) -> dict[str, float]:
-    """The JSON summary line the bridge logs when it stops ({} if absent)."""
-    for name in ("bridge_node.log", "graph.log"):
+def _logged_summary(log_dir: Path, node: str, label: str) -> dict[str, float]:
+    """The last ``<label> summary: {json}`` line a node logs when it stops ({} if absent)."""
+    for name in (f"{node}.log", "graph.log"):
         path = log_dir / name
         if path.is_file():
-            found = re.findall(r"bridge summary: (\{.*\})", path.read_text(errors="replace"))
+            found = re.findall(label + r" summary: (\{.*\})", path.read_text(errors="replace"))
             if found:
                 try:
                     return dict(json.loads(found[-1]))
                 except json.JSONDecodeError:
                     return {}
     return {}
+
+
+def bridge_summary(log_dir: Path) -> dict[str, float]:
+    """The JSON summary line the bridge logs when it stops ({} if absent)."""
+    return _logged_summary(log_dir, "bridge_node", "bridge")
 
 
 def safety_summary(log_dir: Path) -> dict[str, float]:
     """The JSON summary line the safety node logs when it stops ({} if absent)."""
-    for name in ("safety_node.log", "graph.log"):
-        path = log_dir / name
-        if path.is_file():
-            found = re.findall(r"safety summary: (\{.*\})", path.read_text(errors="replace"))
-            if found:
-                try:
-                    return dict(json.loads(found[-1]))
-                except json.JSONDecodeError:
-                    return {}
-    return {}
+    return _logged_summary(log_dir, "safety_node", "safety")
 
 
 def unanswered_run(outcome: RunOutcome, bridge: dict[str, float]) -> RunOutcome:
