@@ -56,7 +56,9 @@ NODES: dict[str, tuple[str, str]] = {
     "safety_node": ("der_ros.nodes.safety_node", r"safety ready"),
     "bridge_node": ("der_ros.nodes.bridge_node", r"bridge ready"),
 }
-START_ORDER = ("recorder_node", "agent_node", "safety_node", "bridge_node")
+#: the safety node starts before the agent: it is the subscriber of the agent's (remapped) command that the
+#: agent's start-up gate (min_command_subscribers) waits for; started after, the agent waited out its 30 s timeout
+START_ORDER = ("recorder_node", "safety_node", "agent_node", "bridge_node")
 #: outputs der graph places in the run directory (unless -p sets them)
 RUN_DIR_OUTPUTS = {("recorder_node", "output"), ("agent_node", "checkpoint_out"), ("agent_node", "policy_dir")}
 STOP_ORDER = ("bridge_node", "agent_node", "safety_node", "recorder_node")

@@ -102,7 +102,10 @@ def test_graph_runs_steps_and_records_everything(ros_domain: int, tmp_path: Path
     assert params["agent_node"]["ros__parameters"]["seed"] == 3
     # the agent is "ready" (and the bridge started) only once the recorder matched its command writer
     assert params["agent_node"]["ros__parameters"]["min_command_subscribers"] == 1
-    assert re.search(r"agent ready", (run_dir / "logs" / "agent_node.log").read_text())
+    agent_log = (run_dir / "logs" / "agent_node.log").read_text()
+    assert re.search(r"agent ready", agent_log)
+    # its command's subscriber (the safety node, started before it) matched: the gate did not time out
+    assert "starting anyway" not in agent_log, logs
 
     bag = run_dir / "bag"
     meta = bag_meta(bag)
