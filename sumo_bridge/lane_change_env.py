@@ -209,6 +209,9 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self.ego_id = "ego"  # ring: always "ego"; urban: "ego.<n>", one per episode
         self._ego_serial = 0
         self._spec: ScenarioSpec | None = load_scenario(cfg.file) if cfg.file else None
+        if self._spec is not None and (cfg.background_sigma is not None or cfg.background_tau is not None):
+            raise ValueError(f"scenario.background_sigma / background_tau with the scenario file {cfg.file}: "
+                             "only for the built-in ring and urban (a file scenario sets its drivers in its vTypes)")  # fmt: skip
         if self._spec is not None:
             net = self._spec.network
             self.network: BuiltNetwork = build_scenario_network(cfg.network, net.net, net.nodes, net.edges,
@@ -355,6 +358,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         assert self._rng is not None
         sumo_seed = int(self._rng.integers(0, 2**31 - 1))
         self.sim.load(self._sumo_args(sumo_seed))
+        self._apply_background_drivers()
         if self._scene is not None:
             self._scene.forget_sizes()
         # departures and collisions arrive with every step's answer (no extra round trip on traci)
@@ -364,6 +368,20 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             self._build_corridor()
         self._episodes_since_load = 0
         self._need_load = False
+
+    def _apply_background_drivers(self) -> None:
+        """The scenario's driver shift (``background_sigma`` / ``background_tau``) on every vehicle type but
+        the ego's and SUMO's built-in defaults; nothing when both are None (the scenarios' own drivers)."""
+        cfg = self.config
+        if cfg.background_sigma is None and cfg.background_tau is None:
+            return
+        for vtype in self.api.vehicletype.getIDList():
+            if vtype == "ego" or vtype.startswith("DEFAULT_"):
+                continue
+            if cfg.background_sigma is not None:
+                self.api.vehicletype.setImperfection(vtype, cfg.background_sigma)
+            if cfg.background_tau is not None:
+                self.api.vehicletype.setTau(vtype, cfg.background_tau)
 
     def _warmup(self, seconds: float, min_steps: int = 0) -> None:
         for _ in range(max(self._steps(seconds), min_steps)):

@@ -163,6 +163,20 @@ class ScenarioConfig:
         low=0,
         high=4095,
     )
+    background_sigma: float | None = param(
+        None,
+        "driver imperfection (SUMO's sigma, 0 = perfect, 1 = most dawdling) of every background vehicle type; "
+        "None: the scenario's own (0.5 on ring and urban). A traffic shift for evaluation (docs/safety.md)",
+        low=0.0,
+        high=1.0,
+    )
+    background_tau: float | None = param(
+        None,
+        "desired time headway in seconds of every background vehicle type (SUMO's tau; smaller = closer "
+        "following, less careful); None: the scenario's own (SUMO's 1 s on ring and urban)",
+        low=0.01,
+        high=10.0,
+    )
     sumo_args: tuple[str, ...] = param((), "extra command-line arguments for sumo (e.g. ['--lateral-resolution', '0.8'])")
     observation: ObservationConfig = param(
         default_factory=ObservationConfig, help="normalisation of the observation (sumo_bridge.observation)"
