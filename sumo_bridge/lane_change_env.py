@@ -78,7 +78,9 @@ was paid so far.
 
 Success at what cost to others
 ------------------------------
-Two quantities per episode, in every ``info`` (running values; the last step's are the episode's):
+Two quantities per episode, in every ``info`` (running values; the last step's are the episode's), and
+``info["lane_changes_done"]``, the ego's lane changes carried out so far (``lane_changes`` counts the
+commands, which SUMO's own model may hold back):
 
 * ``info["time_to_success"]``: simulated seconds from the episode's start (its first observation) to
   the end of the decision that reached the goal -- the target lane held for ``settle_time`` (ring,
@@ -323,6 +325,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._seen_change_of: int | None = None  # _last_change_substep whose lane change was seen
         self._watched: dict[str, int] = {}  # new follower -> last SUMO step (substep index) of its window
         self._imposed_brake = 0.0
+        self._changes_done = 0  # lane changes of the ego seen carried out (_watch_followers)
         self._lane_changes = 0
         self._done = False
         self._committed_steps = 0  # decisions simulated inside the commit transition (commit_on_success)
@@ -726,6 +729,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         if lane_id == before or lane_id.rpartition("_")[0] != before.rpartition("_")[0]:
             return  # the same lane, or another edge (driving on, not a lane change)
         self._seen_change_of = self._last_change_substep
+        self._changes_done += 1
         follower = vehicle.getFollower(ego)[0]
         if follower:
             watched[follower] = k + self._brake_window_steps
@@ -894,6 +898,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             "target_reached": self._target_reached,
             "time_to_success": None if self._success_substep is None else self._success_substep * self.config.step_length,
             "imposed_brake": self._imposed_brake,
+            "lane_changes_done": self._changes_done,
         }
 
     # ------------------------------------------------------------------ lifecycle
