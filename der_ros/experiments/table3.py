@@ -251,13 +251,13 @@ def write_table3(
             run_seeds = [r.spec.seed for r in results[net][name]]
             col = {k: [s[k] for s in per] for k in SCORE_KEYS}
             payload[net][name] = _null_unmeasured({"seeds": run_seeds, **{k: col[k] for k in SCORE_KEYS}})
-            paper = PAPER_TABLE3[net].get(name, math.nan)
+            paper = PAPER_TABLE3.get(net, {}).get(name, math.nan)  # exit, scenario files: none
             lines.append(
                 f"| {labels[name]} (n={len(per)}) | {_cell(iqm_interval(col['eval_success']))} "
                 f"| {_cell(iqm_interval(col['eval_collision']))} | {_cell(iqm_interval(col['eval_time_limit']))} "
                 f"| {_cell(iqm_interval(col['eval_return']), 1)} | {_mean_pm(col['eval_interventions'])} "
                 f"| {_cost_cell(col['eval_time_to_exit'])} | {_cost_cell(col['eval_imposed_brake'])} "
-                f"| {_mean_pm(col['train_total_reward'])} | {paper:.2f} |"
+                f"| {_mean_pm(col['train_total_reward'])} | {'—' if math.isnan(paper) else f'{paper:.2f}'} |"
             )
             for r, s in zip(results[net][name], per):
                 per_seed.append(
