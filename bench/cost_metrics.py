@@ -10,6 +10,8 @@ watched follower's acceleration once per step for 3 s after a change. Three sett
 * ``ring_random``: the ring under a random policy (a change in two of three decisions: the most watching);
 * ``exit_sumo``: the exit scenario with SUMO's model driving the ego (the lane read at every step).
 
+Then the time per call of the two getters the watch makes and of one ring SUMO step.
+
 Rates are simulated SUMO steps per second inside ``env.step`` (resets excluded); a round is one seeded reset
 (tuning seeds) and unseeded ones after it, the same episodes with and without the watch.
 
@@ -24,6 +26,7 @@ import json
 import os
 import statistics
 import time
+import timeit
 from collections.abc import Callable
 from typing import Any
 
@@ -79,6 +82,20 @@ def _setting(name: str, cfg: ScenarioConfig, policy: Callable[[dict[str, Any]], 
             "lane_changes_per_episode": changes / (rounds * per_round)}  # fmt: skip
 
 
+def _getter_us() -> dict[str, float]:
+    """Microseconds per call (best of 3 x 20,000) of the watch's two getters, and of a ring SUMO step (x 500)."""
+    env = LaneChangeEnv(ScenarioConfig.ring())
+    try:
+        env.reset(seed=1)
+        v, ego = env.api.vehicle, env.ego_id
+        other = next(x for x in v.getIDList() if x != ego)
+        calls = {"getAcceleration": (lambda: v.getAcceleration(other), 20_000),
+                 "getLaneID": (lambda: v.getLaneID(ego), 20_000), "simulationStep": (env.api.simulationStep, 500)}  # fmt: skip
+        return {name: 1e6 * min(timeit.repeat(f, number=n, repeat=3)) / n for name, (f, n) in calls.items()}
+    finally:
+        env.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer rounds")
@@ -99,7 +116,9 @@ def main() -> None:
     for r in rows:
         print(f"| {r['setting']} | {r['with_metrics_steps_per_s']:.0f} | {r['without_steps_per_s']:.0f} "
               f"| {r['ratio']:.3f} | {r['lane_changes_per_episode']:.2f} |")  # fmt: skip
-    print(json.dumps({"rounds": rounds, "episodes_per_round": per_round, "rows": rows}))
+    us = _getter_us()
+    print(", ".join(f"{name} {t:.2f} µs" for name, t in us.items()))
+    print(json.dumps({"rounds": rounds, "episodes_per_round": per_round, "rows": rows, "call_us": us}))
 
 
 if __name__ == "__main__":

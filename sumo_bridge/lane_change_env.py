@@ -286,7 +286,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._scene_getters = False  # scene poses read with getters (libsumo) instead of subscribed
         # imposed braking (see the module docstring): SUMO's error for a vehicle that left, the window in steps,
         # whether the ego's own model may change lanes (then its lane is read at every step)
-        self._sumo_error: type[Exception] = _sumo_error(self.api)
+        self._sumo_error: tuple[type[Exception], ...] = _sumo_errors(self.api)
         self._brake_window_steps = self._steps(BRAKE_WINDOW_SECONDS)
         self._ego_changes_itself = cfg.ego_lane_change_mode != 0
         self._reached = False
@@ -915,12 +915,13 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             pass
 
 
-def _sumo_error(api: Any) -> type[Exception]:
-    """The exception a SUMO getter raises for an unknown vehicle (libsumo's, or traci's over a socket)."""
-    error = getattr(api, "TraCIException", None)
-    if error is None:
-        from traci.exceptions import TraCIException as error
-    return error
+def _sumo_errors(api: Any) -> tuple[type[Exception], ...]:
+    """The exceptions a SUMO getter raises for an unknown vehicle: libsumo's (``api.TraCIException``) and
+    traci's (over a socket; a process may hold both backends)."""
+    from traci.exceptions import TraCIException
+
+    own = getattr(api, "TraCIException", None)
+    return (TraCIException,) if own is None or own is TraCIException else (own, TraCIException)
 
 
 def make_ring_env(config: ScenarioConfig | dict[str, Any] | None = None, scenario: dict[str, Any] | None = None,
