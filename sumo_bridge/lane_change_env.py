@@ -76,6 +76,35 @@ An episode lasts ``max_episode_steps`` decisions (default 50 x 0.5 s) unless a c
 ``success``, ``collision`` or ``time_limit`` (scenario files with a goal edge also ``missed``). ``info["target_reached"]`` says whether the bonus
 was paid so far.
 
+Success at what cost to others
+------------------------------
+Two quantities per episode, in every ``info`` (running values; the last step's are the episode's), and
+``info["lane_changes_done"]``, the ego's lane changes carried out so far (``lane_changes`` counts the
+commands, which SUMO's own model may hold back):
+
+* ``info["time_to_success"]``: simulated seconds from the episode's start (its first observation) to
+  the end of the decision that reached the goal -- the target lane held for ``settle_time`` (ring,
+  urban), the goal edge (an exit) -- i.e. decisions x ``decision_interval`` x ``step_length``; None
+  until then (and in episodes that do not succeed). With ``commit_on_success`` it is the committing
+  decision's time, not the end of the horizon the transition runs to.
+* ``info["imposed_brake"]``: the harshest deceleration (m/s², >= 0) the ego imposed on others, MOBIL's
+  safety criterion. After every lane change of the ego -- commanded or (``ego_lane_change_mode`` != 0)
+  made by SUMO's own model -- the *new follower* (``vehicle.getFollower`` on the ego's new lane, just
+  after the change) is watched for :data:`BRAKE_WINDOW_SECONDS` of simulated time or until the episode
+  ends, and its strongest deceleration (``-vehicle.getAcceleration``, the speed difference of each SUMO
+  step) is kept; the episode's value is the maximum over its changes. 0.0 when the ego changed lane
+  into a lane without a follower, when the follower did not brake, and when the ego did not change
+  lane at all (it imposed nothing). Overlapping windows (a second change within the window) are
+  all watched. The follower's own driving is in the number too: with SUMO's driver imperfection
+  (sigma 0.5 on the ring) a follower that merely dawdles decelerates by up to sigma x its accel
+  (~1.3 m/s² for a car of the ring), so values below that say "nobody had to brake". A lane change
+  is the ego's lane index changing on the same edge, read once per SUMO step (``vehicle.getLaneID``:
+  with ``ego_lane_change_mode`` 0 only in the decision of a commanded change); a change made in the
+  very step the ego crosses onto the next edge is not seen. The lane change is carried out after
+  the movements of its step (SUMO's order), so the watch starts with the next step. Cost: one getter
+  per SUMO step and watched vehicle, and only then; the commit fast-forward runs the same steps, so
+  it observes the follower the same way.
+
 Resets and determinism
 ----------------------
 ``reset(seed=s)`` seeds the placement/traffic RNG and SUMO's ``--seed`` (drawn from it) and always
@@ -169,11 +198,14 @@ from sumo_bridge.warm_state import WarmState
 
 log = logging.getLogger(__name__)
 
-__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "make_scenario_env", "EVENTS", "ACTION_MEANINGS"]
+__all__ = ["LaneChangeEnv", "make_ring_env", "make_urban_env", "make_scenario_env", "EVENTS", "ACTION_MEANINGS",
+           "BRAKE_WINDOW_SECONDS"]
 
 #: Possible values of ``info["event"]`` (the outcome, in an episode's last step; None before).
 #: ``missed``: a file scenario's goal edge was missed (sumo_bridge.flow_scenario).
 EVENTS: tuple[str | None, ...] = (None, "success", "collision", "time_limit", "missed")
+#: Seconds of simulated time the ego's new follower is watched after each lane change (``info["imposed_brake"]``).
+BRAKE_WINDOW_SECONDS = 3.0
 #: Every action by index (der_ros.contract.ACTION_NAMES): the paper's three (the default set) and the speed
 #: actions a scenario may add (ScenarioConfig.actions); ``env.action_meanings`` is the scenario's prefix.
 ACTION_MEANINGS: tuple[str, ...] = ("keep", "left", "right", "faster", "slower")
@@ -255,6 +287,12 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._vehicle_results: dict[str, dict[int, Any]] | None = None  # the step's subscription results
         self._scene: SceneTracker | None = None
         self._scene_getters = False  # scene poses read with getters (libsumo) instead of subscribed
+        # imposed braking (see the module docstring): SUMO's error for a vehicle that left, the window in steps,
+        # whether the ego's own model may change lanes (then its lane is read at every step)
+        self._sumo_error: tuple[type[Exception], ...] = _sumo_errors(self.api)
+        self._brake_window_steps = self._steps(BRAKE_WINDOW_SECONDS)
+        self._ego_changes_itself = cfg.ego_lane_change_mode != 0
+        self._reached = False
         self._reset_episode_state()
 
     # ------------------------------------------------------------------ helpers
@@ -282,10 +320,29 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._substep = 0
         self._last_change_substep: int | None = None
         self._on_target_since: int | None = None
+        self._reached = False  # before _target_reached: its setter notes the time of success
+        self._success_substep: int | None = None
         self._target_reached = False
+        self._tracking = False  # imposed braking: on from the end of reset() (the warm-up steps are not watched)
+        self._ego_lane_id = ""  # the ego's lane (SUMO lane id) as last read
+        self._seen_change_of: int | None = None  # _last_change_substep whose lane change was seen
+        self._watched: dict[str, int] = {}  # new follower -> last SUMO step (substep index) of its window
+        self._imposed_brake = 0.0
+        self._changes_done = 0  # lane changes of the ego seen carried out (_watch_followers)
         self._lane_changes = 0
         self._done = False
         self._committed_steps = 0  # decisions simulated inside the commit transition (commit_on_success)
+
+    @property
+    def _target_reached(self) -> bool:
+        """Whether the goal was reached (the bonus paid) in this episode; setting it True notes the time."""
+        return self._reached
+
+    @_target_reached.setter
+    def _target_reached(self, value: bool) -> None:
+        if value and not self._reached:
+            self._success_substep = self._substep
+        self._reached = value
 
     @property
     def sim(self) -> SumoSimulation:
@@ -351,6 +408,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         else:
             self._reset_urban()
         self._read_points()
+        self._ego_lane_id = self.api.vehicle.getLaneID(self.ego_id)
+        self._tracking = True
         info = self._info(event=None, mean_speed=self._mean_speed())
         return self._obs, info
 
@@ -653,6 +712,45 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         for vid in sim[_V_DEPARTED]:
             api.vehicle.subscribe(vid, self._vehicle_vars)
         self._colliding = sim[_V_COLLIDING] > 0
+        if self._tracking:
+            self._watch_followers()
+
+    def _watch_followers(self) -> None:
+        """Imposed braking, after the SUMO step ``self._substep`` (see the module docstring): read each
+        watched follower's acceleration, then whether the ego changed lane in this step (a new watch)."""
+        vehicle = self.api.vehicle
+        k = self._substep
+        watched = self._watched
+        if watched:
+            for vid, last in list(watched.items()):
+                try:
+                    decel = -vehicle.getAcceleration(vid)
+                except self._sumo_error:  # it left the network
+                    del watched[vid]
+                    continue
+                if decel > self._imposed_brake:
+                    self._imposed_brake = decel
+                if k >= last:
+                    del watched[vid]
+        if not self._ego_changes_itself:  # only a commanded change, in its own decision, until it is seen
+            commanded = self._last_change_substep
+            if commanded is None or commanded == self._seen_change_of or k - commanded >= self.config.decision_interval:
+                return
+            if k == commanded:  # the lane the command was given on: the last observation's
+                self._ego_lane_id = f"{self._ego_road_pos_speed[0]}_{self._ego_lane}"
+        ego = self.ego_id
+        try:
+            lane_id = vehicle.getLaneID(ego)
+        except self._sumo_error:  # the ego left the network
+            return
+        before, self._ego_lane_id = self._ego_lane_id, lane_id
+        if lane_id == before or lane_id.rpartition("_")[0] != before.rpartition("_")[0]:
+            return  # the same lane, or another edge (driving on, not a lane change)
+        self._seen_change_of = self._last_change_substep
+        self._changes_done += 1
+        follower = vehicle.getFollower(ego)[0]
+        if follower:
+            watched[follower] = k + self._brake_window_steps
 
     def _mean_speed(self) -> float:
         """Mean speed (m/s) of all vehicles in the simulation (section 5.1 reward)."""
@@ -816,6 +914,9 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             "angle": angle,
             "lane_changes": self._lane_changes,
             "target_reached": self._target_reached,
+            "time_to_success": None if self._success_substep is None else self._success_substep * self.config.step_length,
+            "imposed_brake": self._imposed_brake,
+            "lane_changes_done": self._changes_done,
         }
 
     # ------------------------------------------------------------------ lifecycle
@@ -830,6 +931,15 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             self.close()
         except Exception:
             pass
+
+
+def _sumo_errors(api: Any) -> tuple[type[Exception], ...]:
+    """The exceptions a SUMO getter raises for an unknown vehicle: libsumo's (``api.TraCIException``) and
+    traci's (over a socket; a process may hold both backends)."""
+    from traci.exceptions import TraCIException
+
+    own = getattr(api, "TraCIException", None)
+    return (TraCIException,) if own is None or own is TraCIException else (own, TraCIException)
 
 
 def make_ring_env(config: ScenarioConfig | dict[str, Any] | None = None, scenario: dict[str, Any] | None = None,

@@ -336,8 +336,9 @@ TOPICS: tuple[TopicSpec, ...] = (
         subscribers=("agent_node", "recorder_node"),
         rate="2 per episode (start + end event)",
         meaning=f"one status named '{EPISODE_STATUS}' per event; message {'/'.join(EPISODE_EVENTS)}; "
-        "values episode, steps, return, lane_changes, mean_speed",
-        units="steps, reward, count, m/s",
+        "values episode, steps, return, lane_changes, mean_speed; end events also imposed_brake (the harshest "
+        "deceleration of the ego's new follower after its lane changes) and, on success, time_to_success",
+        units="steps, reward, count, m/s, m/s², s",
     ),
     TopicSpec(
         name=COMMAND,

@@ -339,9 +339,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace or mask for the shielded rows (default: the config's env.safety.mode)")
 
 
+def _cost(value: float) -> str:
+    """A cost-to-others cell (EvalResult.mean_time_to_success / mean_imposed_brake): "–" when not measured."""
+    return "–" if math.isnan(value) else f"{value:.2f}"
+
+
 def run(args: argparse.Namespace) -> int:
     lines = ["| Environment | Baseline | Episodes | Success | Caused collision | Time limit | Missed | Mean return "
-             "| Interventions / episode |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| Interventions / episode | Time to success (s) | Imposed braking (m/s²) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for path in args.config:
         cfg = load_experiment_config(path)
         env_cfg, per_seed = cfg.env, cfg.train.eval_episodes_per_seed
@@ -381,7 +387,7 @@ def run(args: argparse.Namespace) -> int:
             r = results[job.out_dir]
             lines.append(f"| {env_cfg.id} | {job.name} | {r.n} | {r.success_rate:.3f} | {r.collision_rate:.3f} "
                          f"| {r.time_limit_rate:.3f} | {r.rate('missed'):.3f} | {r.mean_return:.2f} "
-                         f"| {r.mean_interventions:.2f} |")  # fmt: skip
+                         f"| {r.mean_interventions:.2f} | {_cost(r.mean_time_to_success)} | {_cost(r.mean_imposed_brake)} |")  # fmt: skip
     if not args.tune:
         print("\n".join(lines))
     return 0

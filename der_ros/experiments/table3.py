@@ -103,7 +103,11 @@ BASELINE_LABELS: dict[str, str] = {
 #: the comparisons of the significance section: (X, Y) -> P(X > Y)
 COMPARISONS = [(f"der{lam}", ref) for lam in ("0.1", "0.5", "0.9") for ref in ("dqn", "per")]
 SCORE_KEYS = ("eval_success", "eval_collision", "eval_time_limit", "eval_return", "eval_episodes", "eval_interventions",
-              "train_total_reward")
+              "eval_time_to_exit", "eval_imposed_brake", "train_total_reward")
+#: success at what cost to others (issue 44): mean seconds to success over the successful episodes, and the mean
+#: over episodes of the harshest deceleration a new follower showed after the ego's lane changes (m/s²). null in
+#: the JSON (and "–" in the table) for evaluations made before these were measured: never 0.
+COST_KEYS = ("eval_time_to_exit", "eval_imposed_brake")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -145,6 +149,8 @@ def score_run(run: RunResult) -> dict[str, float]:
         "eval_return": ev.mean_return if ev else nan,
         "eval_episodes": float(ev.n) if ev else 0.0,
         "eval_interventions": ev.mean_interventions if ev else nan,
+        "eval_time_to_exit": ev.mean_time_to_success if ev else nan,
+        "eval_imposed_brake": ev.mean_imposed_brake if ev else nan,
         "train_total_reward": average_score(run.returns),
         "train_episodes": float(len(run.returns)),
     }
@@ -153,7 +159,29 @@ def score_run(run: RunResult) -> dict[str, float]:
 def _baseline_scores(res: EvalResult) -> dict[str, float]:
     return {"eval_success": res.success_rate, "eval_collision": res.collision_rate,
             "eval_time_limit": res.time_limit_rate, "eval_return": res.mean_return, "episodes": float(res.n),
-            "eval_episodes": float(res.n), "eval_interventions": res.mean_interventions}  # fmt: skip
+            "eval_episodes": float(res.n), "eval_interventions": res.mean_interventions,
+            "eval_time_to_exit": res.mean_time_to_success, "eval_imposed_brake": res.mean_imposed_brake}  # fmt: skip
+
+
+def _null_unmeasured(scores: dict[str, Any]) -> dict[str, Any]:
+    """``scores`` with the COST_KEYS' NaN (not measured) as None (JSON null); the other fields as they are."""
+    def null(v: Any) -> Any:
+        if isinstance(v, list):
+            return [null(x) for x in v]
+        return None if isinstance(v, float) and math.isnan(v) else v
+
+    return {k: null(v) if k in COST_KEYS else v for k, v in scores.items()}
+
+
+def _cost_cell(values: Sequence[float] | float, digits: int = 1) -> str:
+    """A COST_KEYS cell: one value, or mean ± CI over the seeds that have one; "–" when none has."""
+    if not isinstance(values, (list, tuple)):
+        return "–" if math.isnan(values) else f"{values:.{digits}f}"
+    finite = [v for v in values if not math.isnan(v)]
+    if not finite:
+        return "–"
+    ci = mean_interval(finite)
+    return f"{ci.value:.{digits}f} ± {max(ci.high - ci.value, ci.value - ci.low):.{digits}f}"
 
 
 def _versions() -> dict[str, str]:
@@ -199,10 +227,16 @@ def write_table3(
         "once for reaching the target lane, −100 for a caused collision). The last columns are the paper's own",
         "metric, *total reward* = mean return over all **training** episodes (ε-greedy exploration included;",
         "mean over seeds ± 95% CI), beside the paper's value.",
+        "*Time to success* = simulated seconds from an episode's start to its success (the change held on the target",
+        "lane, or the exit taken), mean over the successful episodes; *imposed braking* = the harshest deceleration",
+        "of the ego's new follower within 3 s of each of its lane changes (MOBIL's safety criterion; 0 without a",
+        "change), mean over episodes, in m/s² (sumo_bridge/lane_change_env.py); learned methods: mean over seeds",
+        "± 95% CI. \"–\": an evaluation made before these were measured.",
         "",
     ]
     per_seed = ["| Network | Method | Seed | Eval success | Eval caused collision | Eval time limit | Eval return "
-                "| Train total reward | Train episodes |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+                "| Eval time to success (s) | Eval imposed braking (m/s²) | Train total reward | Train episodes |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     payload: dict[str, Any] = {}
     for net, by_method in scores.items():
         payload[net] = {}
@@ -210,33 +244,36 @@ def write_table3(
             f"## {NETWORKS.get(net, net)}",
             "",
             "| Method | Success | Caused collision | Time limit | Return | Interventions / episode "
-            "| Total reward (training, paper's metric) | Total reward (paper) |",
-            "|---|---|---|---|---|---|---|---|",
+            "| Time to success (s) | Imposed braking (m/s²) | Total reward (training, paper's metric) | Total reward (paper) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for name, per in by_method.items():
             run_seeds = [r.spec.seed for r in results[net][name]]
             col = {k: [s[k] for s in per] for k in SCORE_KEYS}
-            payload[net][name] = {"seeds": run_seeds, **{k: col[k] for k in SCORE_KEYS}}
-            paper = PAPER_TABLE3[net].get(name, math.nan)
+            payload[net][name] = _null_unmeasured({"seeds": run_seeds, **{k: col[k] for k in SCORE_KEYS}})
+            paper = PAPER_TABLE3.get(net, {}).get(name, math.nan)  # exit, scenario files: none
             lines.append(
                 f"| {labels[name]} (n={len(per)}) | {_cell(iqm_interval(col['eval_success']))} "
                 f"| {_cell(iqm_interval(col['eval_collision']))} | {_cell(iqm_interval(col['eval_time_limit']))} "
                 f"| {_cell(iqm_interval(col['eval_return']), 1)} | {_mean_pm(col['eval_interventions'])} "
-                f"| {_mean_pm(col['train_total_reward'])} | {paper:.2f} |"
+                f"| {_cost_cell(col['eval_time_to_exit'])} | {_cost_cell(col['eval_imposed_brake'])} "
+                f"| {_mean_pm(col['train_total_reward'])} | {'—' if math.isnan(paper) else f'{paper:.2f}'} |"
             )
             for r, s in zip(results[net][name], per):
                 per_seed.append(
                     f"| {net} | {labels[name]} | {r.spec.seed} | {s['eval_success']:.3f} | {s['eval_collision']:.3f} "
-                    f"| {s['eval_time_limit']:.3f} | {s['eval_return']:.2f} | {s['train_total_reward']:.2f} "
+                    f"| {s['eval_time_limit']:.3f} | {s['eval_return']:.2f} | {_cost_cell(s['eval_time_to_exit'])} "
+                    f"| {_cost_cell(s['eval_imposed_brake'])} | {s['train_total_reward']:.2f} "
                     f"| {int(s['train_episodes'])} |"
                 )
         b_names = {b: (baseline_labels or {}).get(net, {}).get(b) or BASELINE_LABELS.get(b, b) for b in baselines.get(net, {})}
         for bname, res in baselines.get(net, {}).items():
             b = _baseline_scores(res)
-            payload[net][bname] = b
+            payload[net][bname] = _null_unmeasured(b)
             lines.append(f"| *baseline:* {b_names[bname]} | {b['eval_success']:.3f} "
                          f"| {b['eval_collision']:.3f} | {b['eval_time_limit']:.3f} | {b['eval_return']:.1f} "
-                         f"| {b['eval_interventions']:.2f} | — | — |")  # fmt: skip
+                         f"| {b['eval_interventions']:.2f} | {_cost_cell(b['eval_time_to_exit'])} "
+                         f"| {_cost_cell(b['eval_imposed_brake'])} | — | — |")  # fmt: skip
         lines += ["", "Mean over seeds [95% CI] of the same evaluation (the IQM above is the headline):", "",
                   "| Method | Success | Caused collision | Return |", "|---|---|---|---|"]  # fmt: skip
         for name in by_method:

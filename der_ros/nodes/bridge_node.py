@@ -310,8 +310,9 @@ class BridgeNode(Node):
         if terminated or truncated:
             event = info.get("event") or (EPISODE_TIME_LIMIT if truncated else EPISODE_COLLISION)
             self.events[event] = self.events.get(event, 0) + 1
+            cost = {k: float(info[k]) for k in ("imposed_brake", "time_to_success") if info.get(k) is not None}
             values = episode_values(self.episode, self._ep_steps, self._ep_return, self._ep_lane_changes,
-                                    self._ep_speed_sum / max(self._ep_steps, 1))  # traffic mean speed over the episode
+                                    self._ep_speed_sum / max(self._ep_steps, 1), **cost)  # traffic mean speed over the episode
             self.pub_episode.publish(mc.make_episode_event(stamp, event, values))
             if not done:
                 self.k += 1

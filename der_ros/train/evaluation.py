@@ -146,6 +146,12 @@ class EpisodeResult:
     outcome: str  # one of OUTCOMES
     caused: bool = False  # a collision the agent caused (SUMO env)
     interventions: int = 0  # commands the safety shield replaced by keep lane (env.safety, docs/safety.md)
+    #: seconds from the episode's start to its success (SUMO env, ``info["time_to_success"]``); None when it did
+    #: not succeed, and in results written before the metric existed
+    time_to_success: float | None = None
+    #: harshest deceleration (m/s², >= 0) of a new follower after the ego's lane changes (SUMO env,
+    #: ``info["imposed_brake"]``; 0 without a change); None for other envs and in older results
+    imposed_brake: float | None = None
 
 
 @dataclass
@@ -195,6 +201,18 @@ class EvalResult:
         """Mean number of shield interventions per episode (0 without a shield)."""
         return float(np.mean([e.interventions for e in self.episodes])) if self.episodes else math.nan
 
+    @property
+    def mean_time_to_success(self) -> float:
+        """Mean seconds to success over the episodes that succeeded (NaN without any, or unmeasured)."""
+        times = [e.time_to_success for e in self.episodes if e.outcome == "success" and e.time_to_success is not None]
+        return float(np.mean(times)) if times else math.nan
+
+    @property
+    def mean_imposed_brake(self) -> float:
+        """Mean over episodes of each episode's harshest imposed deceleration, m/s² (NaN if unmeasured)."""
+        values = [e.imposed_brake for e in self.episodes if e.imposed_brake is not None]
+        return float(np.mean(values)) if values else math.nan
+
     def summary(self) -> dict[str, float]:
         """The row of ``evaluations.csv`` (and the ``eval/*`` metric names)."""
         return {
@@ -207,6 +225,8 @@ class EvalResult:
             "time_limit": self.time_limit_rate,
             "mean_length": float(np.mean([e.length for e in self.episodes])) if self.episodes else math.nan,
             "interventions": self.mean_interventions,
+            "time_to_success": self.mean_time_to_success,
+            "imposed_brake": self.mean_imposed_brake,
             "wall_s": self.wall_s,
         }
 
@@ -375,9 +395,12 @@ def run_episodes(
                 stream, k = slot[0], slot[1]
                 ret = float(np.asarray(info["episode"]["r"])) if "episode" in info else slot[4]
                 outcome, caused = _outcome(info, terminated, truncated)
+                tts, brake = info.get("time_to_success"), info.get("imposed_brake")
                 results[(stream, k)] = EpisodeResult(
                     seed=int(seeds[stream]) if k == 0 else None, stream=stream, ret=ret, length=int(slot[5]),
                     outcome=outcome, caused=caused, interventions=int(info.get("interventions", 0)),
+                    time_to_success=float(tts) if outcome == "success" and tts is not None else None,
+                    imposed_brake=None if brake is None else float(brake),
                 )  # fmt: skip
                 if k + 1 < sizes[stream]:
                     start(i, stream, k + 1)

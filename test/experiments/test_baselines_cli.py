@@ -25,8 +25,12 @@ def test_der_baselines_prints_each_baselines_own_episodes(tmp_path: Path, capsys
     assert cli.main(["baselines", str(RING), "--episodes", "2", "--jobs", "2", "--out", str(tmp_path)]) == 0
     rows = [_cells(x) for x in capsys.readouterr().out.splitlines() if x.startswith("| der_ros/")]
     assert [r[1] for r in rows] == list(baselines.SUMO_BASELINES)
-    for _env_id, name, n, success, collision, time_limit, missed, ret, interventions in rows:
+    for _env_id, name, n, success, collision, time_limit, missed, ret, interventions, tts, brake in rows:
         eps = json.loads((tmp_path / "ring" / name / "evaluation.json").read_text())["episodes"]
+        # success at what cost to others: each episode's own, averaged (time: over the successful ones)
+        times = [e["time_to_success"] for e in eps if e["outcome"] == "success"]
+        assert tts == (f"{sum(times) / len(times):.2f}" if times else "–")
+        assert float(brake) == pytest.approx(sum(e["imposed_brake"] for e in eps) / 2, abs=0.005)
         assert int(n) == len(eps) == 2
         assert float(success) == pytest.approx(sum(e["outcome"] == "success" for e in eps) / 2)
         assert float(collision) == pytest.approx(sum(e["outcome"] == "collision" and e["caused"] for e in eps) / 2)
@@ -36,6 +40,7 @@ def test_der_baselines_prints_each_baselines_own_episodes(tmp_path: Path, capsys
         assert float(interventions) == 0.0  # no shield asked for: nothing vetoed
     keep = next(r for r in rows if r[1] == "keep")
     assert (keep[3], keep[5]) == ("0.000", "1.000")  # never changes lane: never arrives, always the time limit
+    assert (keep[9], keep[10]) == ("–", "0.00")  # no success to time, nobody made to brake
 
 
 def test_der_baselines_tune_picks_the_best_safe_setting(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

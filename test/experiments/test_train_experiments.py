@@ -151,6 +151,10 @@ def test_table3_tiny_end_to_end_writes_the_evaluation_columns(tmp_path: Path, ca
         assert len(table["dqn"][key]) == 1
     final = json.loads((out / "ring" / "dqn" / "seed1000" / "evaluation.json").read_text())
     assert table["dqn"]["eval_return"][0] == pytest.approx(final["summary"]["mean_return"])
+    # success at what cost to others, measured in this evaluation: per seed, from the run's own episodes
+    assert table["dqn"]["eval_imposed_brake"][0] == pytest.approx(final["summary"]["imposed_brake"])
+    assert all(e["imposed_brake"] >= 0.0 for e in final["episodes"])
+    assert table["keep"]["eval_imposed_brake"] == 0.0 and table["keep"]["eval_time_to_exit"] is None
     assert table["keep"]["eval_success"] == 0.0 and table["keep"]["eval_time_limit"] == 1.0  # never changes lane
     assert "seeds" not in table["keep"]
     # every baseline rate is the count of its own episodes, recounted here (a rate in [0, 1] could be any rate)

@@ -235,3 +235,29 @@ def test_scene_markers_are_sumos_vehicles_and_the_road_is_latched(ros_graph):  #
     assert set(got) == set(lanes)
     assert all(np.array_equal(got[i].points, lanes[i].points) and got[i].width == lanes[i].width for i in lanes)
     assert road[0].markers[0].header.frame_id == "map"
+
+
+def test_episode_end_event_carries_the_cost_to_others(ros_graph):  # noqa: F811
+    """The end event carries the env's imposed_brake and time_to_success: the same as the env gives in this
+    process for the bridge's scenario (seed 0) and the same actions -- here a successful cut-in (searched
+    offline: four keeps, then left) that makes the new follower brake."""
+    from sumo_bridge.lane_change_env import LaneChangeEnv
+
+    actions = [0, 0, 0, 0, 1, 0, 0, 0]
+    a = FakeAgent(ros_graph, **{"scenario.max_episode_steps": len(actions), "scenario.ring_rebuild_every": 1})
+    env = LaneChangeEnv(ScenarioConfig.ring(max_episode_steps=len(actions), ring_rebuild_every=1))  # the bridge's
+    try:
+        env.reset()
+        for k, action in enumerate(actions):
+            a.state(k)
+            a.send(k, action)
+            _obs, _r, terminated, truncated, info = env.step(action)
+        assert truncated and info["event"] == "success" and info["imposed_brake"] > 0.0
+    finally:
+        env.close()
+    ends = wait_for(lambda: [e for m in list(a.episodes) for e in ct.parse_episode_events(m) if e[1] != "start"],
+                    10, what="the episode's end event", procs=[a.proc])  # fmt: skip
+    _stamp, event, values = ends[0]
+    assert event == "success" and values["lane_changes"] == info["lane_changes_done"] == 1
+    assert values["imposed_brake"] == info["imposed_brake"]
+    assert values["time_to_success"] == info["time_to_success"] == 2.5

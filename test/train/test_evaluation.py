@@ -183,3 +183,54 @@ def test_the_process_evaluator_gives_the_inline_results_over_pipes() -> None:
     same = lambda r: {k: v for k, v in r.items() if k != "wall_s"} | {"summary": {  # noqa: E731
         k: v for k, v in r["summary"].items() if k != "wall_s"}}
     assert [same(r) for r in results["process"]] == [same(r) for r in results["inline"]]
+
+
+class _ScriptedEnv:
+    """An env whose episodes end as scripted: (outcome, info time_to_success, info imposed_brake) per episode."""
+
+    def __init__(self, script: list[tuple[str, float | None, float]]) -> None:
+        self.script, self.k = script, -1
+        self.unwrapped = self
+
+    def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict[str, object]]:
+        self.k += 1
+        return np.zeros(2, dtype=np.float32), {}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, object]]:
+        event, tts, brake = self.script[self.k]
+        info = {"event": event, "caused": event == "collision", "time_to_success": tts, "imposed_brake": brake}
+        return np.zeros(2, dtype=np.float32), 1.0, event == "collision", event != "collision", info
+
+    def close(self) -> None:
+        pass
+
+
+def test_episodes_carry_time_to_success_and_imposed_braking(tmp_path: Path) -> None:
+    """Success at what cost to others (issue 44): the env's last info per episode; a time to success only for
+    an episode that ended in success (a collision after the goal was reached has none); means in the summary
+    and in evaluation.json; results written before the metrics load as unmeasured (None / NaN), never 0."""
+    from der_ros.train.evaluation import EvalResult
+
+    script = [("success", 6.5, 4.0), ("collision", 3.0, 9.0), ("time_limit", None, 0.0), ("success", 2.5, 1.0)]
+    env = _ScriptedEnv(script)
+    eps = run_episodes(lambda obs, infos: [0] * len(obs), [env], evaluation_seeds(4), episodes=4)
+    assert [(e.outcome, e.time_to_success, e.imposed_brake) for e in eps] == [
+        ("success", 6.5, 4.0), ("collision", None, 9.0), ("time_limit", None, 0.0), ("success", 2.5, 1.0)]
+    res = EvalResult(step=7, episodes=eps, seeds=evaluation_seeds(4))
+    assert res.summary()["time_to_success"] == pytest.approx(4.5)  # (6.5 + 2.5) / 2 successes
+    assert res.summary()["imposed_brake"] == pytest.approx(3.5)  # (4 + 9 + 0 + 1) / 4 episodes
+    saved = json.loads(res.save(tmp_path / "evaluation.json").read_text())
+    assert [e["time_to_success"] for e in saved["episodes"]] == [6.5, None, None, 2.5]
+    assert saved["summary"]["imposed_brake"] == pytest.approx(3.5)
+    back = EvalResult.load(tmp_path / "evaluation.json")
+    assert back.mean_time_to_success == pytest.approx(4.5) and back.episodes[1].imposed_brake == 9.0
+    for e in saved["episodes"]:  # an evaluation.json from before the metrics
+        del e["time_to_success"], e["imposed_brake"]
+    old = EvalResult.from_json(saved)
+    assert old.episodes[0].time_to_success is None and old.episodes[0].imposed_brake is None
+    assert np.isnan(old.mean_time_to_success) and np.isnan(old.mean_imposed_brake)
+    # envs without the metrics (gymnasium's): unmeasured as well
+    cart = [make_env("CartPole-v1", seed=0)]
+    plain = EvalResult(step=0, episodes=run_episodes(lambda obs, infos: [0] * len(obs), cart, evaluation_seeds(1), 1))
+    cart[0].close()
+    assert plain.episodes[0].imposed_brake is None and np.isnan(plain.summary()["imposed_brake"])
