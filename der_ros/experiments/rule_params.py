@@ -44,10 +44,8 @@ def _section(path: Path, baseline: str, network: str, expected: str) -> dict[str
 
 
 def _number(path: Path, key: str, value: Any) -> float:
-    if isinstance(value, bool):
-        value = math.nan
     try:
-        number = float(value)
+        number = math.nan if isinstance(value, bool) else float(value)
     except (TypeError, ValueError):
         number = math.nan
     if not math.isfinite(number):
