@@ -32,7 +32,7 @@ from sumo_bridge.mobil import MobilParams
 #: (politeness 0.5, threshold 0.2 m/s^2, exit_lookahead 100 m stay at their defaults)
 GRIDS: dict[str, dict[str, tuple[float, ...]]] = {
     "sumo_tuned": {"lcAssertive": (1.0, 2.0, 3.0, 5.0), "lcStrategic": (1.0, 3.0), "lcCooperative": (1.0, 0.5)},
-    "mobil": {"exit_bias": (1.0, 3.0, 10.0), "safe_decel": (4.0, 6.0, 9.0)},
+    "mobil": {"exit_bias": (1.0, 3.0, 10.0, 30.0), "safe_decel": (4.0, 6.0, 9.0)},
 }
 
 
