@@ -45,6 +45,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from sumo_bridge.scenario import lane_change_params
 from sumo_bridge.scenario_file import ScenarioSpec
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,9 @@ class FlowScenarioMixin:
         if not cands:
             return False
         self.ego_id = cands[int(rng.integers(len(cands)))]
-        api.vehicle.setType(self.ego_id, spec.ego.type)
+        api.vehicle.setType(self.ego_id, cfg.ego_type or spec.ego.type)
+        for name, value in lane_change_params(cfg.ego_lane_change_params).items():  # e.g. the sumo_tuned baseline's
+            api.vehicle.setParameter(self.ego_id, f"laneChangeModel.{name}", repr(value))
         api.vehicle.setSpeedFactor(self.ego_id, 1.0)
         api.vehicle.setRoute(self.ego_id, list(spec.ego.route))
         api.vehicle.setLaneChangeMode(self.ego_id, cfg.ego_lane_change_mode)

@@ -10,6 +10,7 @@ CLI flags and ROS parameters share the same checks; a bad value raises
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -18,10 +19,36 @@ from der_ros.configuration import ConfigError, from_dict, param, to_dict, valida
 from sumo_bridge.network_build import NETWORK_NAMES
 from sumo_bridge.observation import ObservationConfig
 
-__all__ = ["ScenarioConfig", "scenario_from_kwargs", "ACTION_SETS"]
+__all__ = ["ScenarioConfig", "scenario_from_kwargs", "ACTION_SETS", "LANE_CHANGE_PARAMS", "lane_change_params"]
 
 #: The action sets a scenario may use; index = action value (der_ros.contract carries the same values).
 ACTION_SETS: tuple[tuple[str, ...], ...] = (("keep", "left", "right"), ("keep", "left", "right", "faster", "slower"))
+
+#: SUMO LC2013 parameters an ego may get through ``ego_lane_change_params`` (SUMO's vType attributes of the
+#: same names; docs: "Lane-Changing Models")
+LANE_CHANGE_PARAMS: tuple[str, ...] = (
+    "lcStrategic", "lcCooperative", "lcSpeedGain", "lcKeepRight", "lcOvertakeRight", "lcLookaheadLeft",
+    "lcSpeedGainRight", "lcAssertive", "lcImpatience", "lcTimeToImpatience", "lcAccelLat", "lcSigma",
+)  # fmt: skip
+
+
+def lane_change_params(entries: tuple[str, ...] | list[str]) -> dict[str, float]:
+    """``('lcAssertive=3', ...)`` as ``{'lcAssertive': 3.0}``; a :class:`ConfigError` names a malformed entry."""
+    out: dict[str, float] = {}
+    for entry in entries:
+        name, sep, value = str(entry).partition("=")
+        name = name.strip()
+        if not sep or name not in LANE_CHANGE_PARAMS:
+            raise ConfigError(f"ego_lane_change_params: {entry!r}, expected 'name=value' with name one of "
+                              f"{', '.join(LANE_CHANGE_PARAMS)}")  # fmt: skip
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number):
+            raise ConfigError(f"ego_lane_change_params: {entry!r}, expected a finite number after '='")
+        out[name] = number
+    return out
 
 
 @dataclass
@@ -177,6 +204,17 @@ class ScenarioConfig:
         low=0.01,
         high=10.0,
     )
+    ego_type: str = param(
+        "",
+        "file scenarios: the vType the ego gets when it is taken over; '' = the scenario file's ego.type. The "
+        "IDM+MOBIL baseline drives the exit with 'ego_idm' (SUMO's IDM car-following, sumo_bridge/mobil.py)",
+    )
+    ego_lane_change_params: tuple[str, ...] = param(
+        (),
+        "file scenarios: SUMO lane-change model parameters of the ego as 'name=value' (e.g. 'lcAssertive=3'), set "
+        "with vehicle.setParameter('laneChangeModel.<name>') when it is taken over; the 'sumo_tuned' baseline's "
+        f"tuned LC2013 parameters. Names: {', '.join(LANE_CHANGE_PARAMS)}",
+    )
     sumo_args: tuple[str, ...] = param((), "extra command-line arguments for sumo (e.g. ['--lateral-resolution', '0.8'])")
     observation: ObservationConfig = param(
         default_factory=ObservationConfig, help="normalisation of the observation (sumo_bridge.observation)"
@@ -197,7 +235,12 @@ class ScenarioConfig:
     def check(self) -> None:
         if tuple(self.actions) not in ACTION_SETS:
             raise ConfigError(f"actions = {list(self.actions)!r}, expected one of {[list(a) for a in ACTION_SETS]}")
+        lane_change_params(self.ego_lane_change_params)  # raises on a malformed entry
         if not self.file:
+            for name in ("ego_type", "ego_lane_change_params"):
+                if getattr(self, name):
+                    raise ConfigError(f"{name} = {getattr(self, name)!r}, expected it empty: only scenario files take "
+                                      "over an ego (the ring and urban set-ups insert theirs)")
             if self.network not in NETWORK_NAMES:
                 raise ConfigError(
                     f"network = {self.network!r}, expected one of {', '.join(NETWORK_NAMES)} (built in) or a scenario "

@@ -16,7 +16,18 @@ SUMO lane change (``der_ros/LaneChange*``):
   ``config/baselines.yaml``;
 * ``sumo`` -- SUMO's own lane-change model given a standing request to reach the target lane:
   the immediate policy's command every step, with the ego's ``laneChangeMode`` at SUMO's default
-  1621, so SUMO carries a change out only when its own safety checks allow it.
+  1621, so SUMO carries a change out only when its own safety checks allow it. In a scenario whose
+  goal is an edge of the ego's route (an exit) nothing is commanded: SUMO's strategic lane changes
+  take the ego there.
+
+Scenarios with an exit (a goal edge) add two rules a user expects there (:data:`EXIT_BASELINES`):
+
+* ``mobil`` -- IDM+MOBIL as the ego's driver: SUMO's IDM car-following (the scenario's vType
+  :data:`MOBIL_EGO_TYPE`) and MOBIL with a mandatory-exit bias choosing keep / left / right
+  (:mod:`sumo_bridge.mobil`; never the speed actions); the bias (and b_safe) tuned on the tuning seeds
+  and frozen in ``config/baselines.yaml`` (:mod:`der_ros.experiments.rule_params`);
+* ``sumo_tuned`` -- ``sumo`` with the ego's LC2013 lane-change parameters (``lcAssertive``, ...)
+  tuned on the tuning seeds and frozen there: the default row alone would be a strawman.
 
 CartPole: ``random``, ``constant`` (always push left) and ``scripted`` (push towards where the
 pole falls: the sign of angle + 0.5 x angular velocity).
@@ -43,6 +54,7 @@ import numpy as np
 import yaml
 
 from der_ros.configuration import ConfigError, read_yaml_mapping, to_dict, validate
+from der_ros.experiments.rule_params import lane_change_entries, load_mobil_params, load_sumo_tuned_params
 from der_ros.experiments.table_report import write_markdown
 from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import EnvConfig, load_experiment_config
@@ -56,11 +68,16 @@ from der_ros.train.evaluation import (
     run_episodes,
 )
 from sumo_bridge import ENV_NETWORKS
+from sumo_bridge.mobil import MobilParams, mobil_policy
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy
 from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
 
 __all__ = [
     "SUMO_BASELINES",
+    "EXIT_BASELINES",
+    "MOBIL_EGO_TYPE",
+    "rule_params",
+    "baseline_job",
     "CARTPOLE_BASELINES",
     "GapAcceptanceParams",
     "baseline_names",
@@ -80,6 +97,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 SUMO_BASELINES = ("keep", "immediate", "random", "gap_acceptance", "sumo")
+#: the baselines of scenarios whose goal is an exit (an edge of the ego's route)
+EXIT_BASELINES = ("keep", "immediate", "random", "gap_acceptance", "mobil", "sumo", "sumo_tuned")
+#: the vType the ``mobil`` baseline's ego drives with: SUMO's IDM with sumo_bridge.idm.IdmParams' values
+#: (defined in the exit scenario's demand, sumo_bridge/scenarios/exit/exit.rou.xml)
+MOBIL_EGO_TYPE = "ego_idm"
 CARTPOLE_BASELINES = ("random", "constant", "scripted")
 #: SUMO's default laneChangeMode: its own model, commanded changes only when safe (bits 8-9 = 10)
 SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
@@ -115,7 +137,7 @@ def _goal_by_route(env_cfg: EnvConfig) -> bool:
 def baseline_names(env_cfg: EnvConfig) -> tuple[str, ...]:
     """The baselines of this environment (none for Atari)."""
     if _network(env_cfg) is not None:
-        return SUMO_BASELINES
+        return EXIT_BASELINES if _goal_by_route(env_cfg) else SUMO_BASELINES
     if env_cfg.id.startswith("CartPole"):
         return CARTPOLE_BASELINES
     return ()
@@ -151,16 +173,34 @@ def gap_params_tuned(network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> bo
     return tuned
 
 
+def rule_params(name: str, network: str, path: str | Path = DEFAULT_PARAMS_FILE) -> Any:
+    """The frozen parameters baseline ``name`` runs with on ``network`` (None for a rule without any):
+    :class:`GapAcceptanceParams`, :class:`~sumo_bridge.mobil.MobilParams` or the ``sumo_tuned`` ego's
+    lane-change parameters (a dict)."""
+    name = name.removesuffix(_SHIELD)
+    if name == "gap_acceptance":
+        return load_gap_params(network, path)
+    if name == "mobil":
+        return load_mobil_params(network, path)
+    if name == "sumo_tuned":
+        return load_sumo_tuned_params(network, path)
+    return None
+
+
 def _per_env(rule: Any) -> Policy:
     return lambda obs, infos: [int(rule(info["points"])) for info in infos]
 
 
-def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int = 0) -> Policy:
+def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int = 0,
+                    mobil: MobilParams | None = None) -> Policy:
     """The batched policy of baseline ``name`` (points-based for SUMO, observation-based for CartPole)."""
     if name == "keep":
         return _per_env(keep_policy)
-    if name in ("immediate", "sumo"):
+    if name in ("immediate", "sumo", "sumo_tuned"):
         return _per_env(immediate_policy)
+    if name == "mobil":
+        m = mobil or MobilParams()
+        return _per_env(lambda p: mobil_policy(p, m))
     if name == "gap_acceptance":
         g = gap or GapAcceptanceParams()
         return _per_env(lambda p: gap_acceptance_policy(p, g.lead_gap, g.follow_gap, g.time_headway))
@@ -171,7 +211,7 @@ def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int
         return lambda obs, infos: [0] * len(obs)
     if name == "scripted":
         return lambda obs, infos: [int(o[2] + 0.5 * o[3] > 0) for o in obs]
-    raise ValueError(f"baseline {name!r} unknown; expected one of {', '.join(SUMO_BASELINES + CARTPOLE_BASELINES)}")
+    raise ValueError(f"baseline {name!r} unknown; expected one of {', '.join(EXIT_BASELINES + CARTPOLE_BASELINES)}")
 
 
 #: the baselines ``der table3 --shield`` / ``der baselines --safety`` also run behind the shield (as ``<name>+shield``)
@@ -186,14 +226,21 @@ def shielded_env_config(env_cfg: EnvConfig, kind: str, mode: str | None = None) 
     return validate(out, source="safety")
 
 
-def baseline_env_config(env_cfg: EnvConfig, name: str) -> EnvConfig:
-    """The env config a baseline runs on (``sumo``: the ego's laneChangeMode at SUMO's default)."""
-    if name != "sumo":
+def baseline_env_config(env_cfg: EnvConfig, name: str, params: Any = None) -> EnvConfig:
+    """The env config a baseline runs on (``sumo``: the ego's laneChangeMode at SUMO's default;
+    ``sumo_tuned``: that and the ego's lane-change parameters ``params``; ``mobil``: the ego's vType
+    :data:`MOBIL_EGO_TYPE`)."""
+    if name not in ("sumo", "sumo_tuned", "mobil"):
         return env_cfg
     out = copy.deepcopy(env_cfg)
     kwargs = dict(out.kwargs)
     scenario = dict(kwargs.get("scenario") or {})
-    scenario["ego_lane_change_mode"] = SUMO_DEFAULT_LANE_CHANGE_MODE
+    if name == "mobil":
+        scenario["ego_type"] = MOBIL_EGO_TYPE
+    else:
+        scenario["ego_lane_change_mode"] = SUMO_DEFAULT_LANE_CHANGE_MODE
+    if name == "sumo_tuned":
+        scenario["ego_lane_change_params"] = lane_change_entries(params or {})
     kwargs["scenario"] = scenario
     out.kwargs = kwargs
     return out
@@ -207,8 +254,10 @@ def evaluate_baseline(
     seed_base: int = EVAL_SEED_BASE,
     gap: GapAcceptanceParams | None = None,
     parallel_envs: int = 1,
+    params: Any = None,
 ) -> EvalResult:
-    """Run baseline ``name`` on the evaluation seeds (in this process; one env for SUMO)."""
+    """Run baseline ``name`` on the evaluation seeds (in this process; one env for SUMO); ``params``: the
+    rule's other parameters (:func:`rule_params`: ``mobil``'s MobilParams, ``sumo_tuned``'s dict)."""
     import time
 
     t0 = time.perf_counter()
@@ -216,10 +265,13 @@ def evaluate_baseline(
     seeds = evaluation_seeds(n_streams, seed_base)
     is_sumo = _network(env_cfg) is not None
     name = name.removesuffix(_SHIELD)  # a shielded row: the same rule, the shield is in env_cfg.safety
-    envs = [make_env_from_config(baseline_env_config(env_cfg, name), seed_base + i)
+    if name == "sumo_tuned" and not params:
+        raise ValueError("baseline 'sumo_tuned' needs its lane-change parameters (rule_params)")
+    envs = [make_env_from_config(baseline_env_config(env_cfg, name, params), seed_base + i)
             for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
     try:
-        policy = baseline_policy("keep" if name == "sumo" and _goal_by_route(env_cfg) else name, gap)
+        by_route = name in ("sumo", "sumo_tuned") and _goal_by_route(env_cfg)
+        policy = baseline_policy("keep" if by_route else name, gap, mobil=params if name == "mobil" else None)
         eps = run_episodes(policy, envs, seeds, episodes, episodes_per_seed)
     finally:
         for env in envs:
@@ -238,6 +290,8 @@ class BaselineJob:
     seed_base: int
     gap: GapAcceptanceParams | None
     out_dir: str
+    params: Any = None
+    """the rule's other parameters (:func:`rule_params`): MobilParams for ``mobil``, a dict for ``sumo_tuned``"""
 
     def cached(self) -> EvalResult | None:
         path = Path(self.out_dir) / "evaluation.json"
@@ -254,12 +308,23 @@ class BaselineJob:
                "gap": None if self.gap is None else self.gap.__dict__}  # fmt: skip
         if self.env_cfg.safety.enabled:  # (absent without a shield: earlier caches stay valid)
             out["safety"] = to_dict(self.env_cfg.safety)
+        if self.params is not None:  # (likewise)
+            out["params"] = dataclasses.asdict(self.params) if dataclasses.is_dataclass(self.params) else self.params
         return out
+
+
+def baseline_job(env_cfg: EnvConfig, row: str, episodes: int, episodes_per_seed: int, seed_base: int,
+                 out_dir: str | Path, params: Any = None) -> BaselineJob:
+    """The :class:`BaselineJob` of table row ``row`` (a baseline's name, ``+shield`` allowed) with its rule's
+    frozen parameters ``params`` (:func:`rule_params`)."""
+    gap = params if row.removesuffix(_SHIELD) == "gap_acceptance" else None
+    return BaselineJob(env_cfg, row, episodes, episodes_per_seed, seed_base, gap, str(out_dir),
+                       params=None if gap is not None else params)  # fmt: skip
 
 
 def _run_job(job: BaselineJob) -> dict[str, Any]:
     res = evaluate_baseline(job.env_cfg, job.name, job.episodes, job.episodes_per_seed, job.seed_base, job.gap,
-                            parallel_envs=16)  # fmt: skip
+                            parallel_envs=16, params=job.params)  # fmt: skip
     out = Path(job.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     res.save(out / "evaluation.json")
@@ -367,21 +432,23 @@ def run(args: argparse.Namespace) -> int:
                 f"Best: `{yaml.safe_dump(best.__dict__, default_flow_style=True).strip()}`", "", *rows, ""])  # fmt: skip
             print(md.read_text())
             continue
-        gap = load_gap_params(net, args.params) if net else None
         names = baseline_names(env_cfg)
         unknown = sorted(set(args.only or ()) - set(names))
         if unknown:
             raise ConfigError(f"--only {unknown[0]!r}: not a baseline of {env_cfg.id}, expected one of {', '.join(names)}")
+        chosen = [name for name in names if not args.only or name in args.only]
+        shielded = [name for name in SHIELDED_BASELINES if not args.only or name in args.only] if args.safety != "none" else []
+        # each rule's frozen parameters, read only for the rules that run (a scenario needs no section for keep)
+        params = {name: rule_params(name, net, args.params) for name in {*chosen, *shielded}} if net else {}
         base = TUNING_EVAL_SEED_BASE if args.tuning_seeds else EVAL_SEED_BASE
         sub = "tuning-seeds" if args.tuning_seeds else ""
-        jobs = [BaselineJob(env_cfg, name, args.episodes, per_seed, base, gap if name == "gap_acceptance" else None,
-                            str(Path(args.out) / sub / (net or env_cfg.id) / name))
-                for name in names if not args.only or name in args.only]  # fmt: skip
-        if args.safety != "none" and net is not None:
+        folder = Path(args.out) / sub / (net or env_cfg.id)
+        jobs = [baseline_job(env_cfg, name, args.episodes, per_seed, base, folder / name, params.get(name))
+                for name in chosen]  # fmt: skip
+        if shielded and net is not None:
             env_s = shielded_env_config(env_cfg, args.safety, args.safety_mode)
-            jobs += [BaselineJob(env_s, name + _SHIELD, args.episodes, per_seed, base,
-                                 gap if name == "gap_acceptance" else None, str(Path(args.out) / sub / net / (name + _SHIELD)))
-                     for name in SHIELDED_BASELINES if not args.only or name in args.only]  # fmt: skip
+            jobs += [baseline_job(env_s, name + _SHIELD, args.episodes, per_seed, base, folder / (name + _SHIELD),
+                                  params.get(name)) for name in shielded]  # fmt: skip
         results = run_baselines(jobs, args.jobs)
         for job in jobs:
             r = results[job.out_dir]

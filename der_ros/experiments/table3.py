@@ -51,9 +51,10 @@ from der_ros.experiments.baselines import (
     DEFAULT_PARAMS_FILE,
     SHIELDED_BASELINES,
     BaselineJob,
+    baseline_job,
     baseline_names,
     gap_params_tuned,
-    load_gap_params,
+    rule_params,
     run_baselines,
     shielded_env_config,
 )
@@ -96,6 +97,8 @@ BASELINE_LABELS: dict[str, str] = {
     "random": "random",
     "gap_acceptance": "gap acceptance (tuned)",
     "sumo": "SUMO's own model (standing request)",
+    "mobil": "IDM+MOBIL (exit bias tuned)",
+    "sumo_tuned": "SUMO's own model, lane-change parameters tuned",
     "immediate+shield": "immediate change + shield",
     "random+shield": "random + shield",
     "gap_acceptance+shield": "gap acceptance (tuned) + shield",
@@ -457,17 +460,17 @@ def run(args: argparse.Namespace) -> int:
         for net in args.networks:
             cfg = load_experiment_config(configs[net], overrides or None)
             episodes = cfg.train.final_eval_episodes or cfg.train.eval_episodes
-            gap = load_gap_params(net, args.baseline_params or DEFAULT_PARAMS_FILE)
+            params_file = args.baseline_params or DEFAULT_PARAMS_FILE
+            folder = Path(args.out) / net / "baselines"
             for name in baseline_names(cfg.env):
-                jobs.append((net, BaselineJob(cfg.env, name, episodes, cfg.train.eval_episodes_per_seed,
-                                              cfg.train.eval_seed_base, gap if name == "gap_acceptance" else None,
-                                              str(Path(args.out) / net / "baselines" / name))))  # fmt: skip
+                jobs.append((net, baseline_job(cfg.env, name, episodes, cfg.train.eval_episodes_per_seed,
+                                               cfg.train.eval_seed_base, folder / name, rule_params(name, net, params_file))))  # fmt: skip
             if args.shield != "none":
                 env_s = shielded_env_config(cfg.env, args.shield, args.shield_mode)
                 for name in SHIELDED_BASELINES:
-                    jobs.append((net, BaselineJob(env_s, name + SHIELD_SUFFIX, episodes, cfg.train.eval_episodes_per_seed,
-                                                  cfg.train.eval_seed_base, gap if name == "gap_acceptance" else None,
-                                                  str(Path(args.out) / net / "baselines" / (name + SHIELD_SUFFIX)))))  # fmt: skip
+                    jobs.append((net, baseline_job(env_s, name + SHIELD_SUFFIX, episodes, cfg.train.eval_episodes_per_seed,
+                                                   cfg.train.eval_seed_base, folder / (name + SHIELD_SUFFIX),
+                                                   rule_params(name, net, params_file))))  # fmt: skip
         evaluated = run_baselines([j for _, j in jobs], args.jobs)
         for net, job in jobs:
             baselines.setdefault(net, {})[job.name] = evaluated[job.out_dir]
