@@ -30,6 +30,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import beta as beta_dist
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.agent.dqn import DQNAgent
@@ -91,23 +92,7 @@ def upper_bound_95(k: int, n: int) -> float:
         return float("nan")
     if k >= n:
         return 1.0
-    lo, hi = k / n, 1.0
-    for _ in range(60):  # bisection on P(X <= k | p) = 0.05
-        mid = (lo + hi) / 2
-        if _binom_cdf(k, n, mid) > 0.05:
-            lo = mid
-        else:
-            hi = mid
-    return hi
-
-
-def _binom_cdf(k: int, n: int, p: float) -> float:
-    term = (1.0 - p) ** n  # P(X = 0)
-    total = term
-    for i in range(1, k + 1):
-        term *= (n - i + 1) / i * p / (1.0 - p)
-        total += term
-    return total
+    return float(beta_dist.ppf(0.95, k + 1, n - k))
 
 
 def evaluate_run(run_dir: Path, episodes: int, seed_base: int, traffic: EnvConfig | None = None,
