@@ -62,6 +62,7 @@ from der_ros.experiments.paired import PairedCounts, paired_counts
 from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
     SHIELD_SUFFIX,
+    Method,
     RunResult,
     RunSpec,
     add_suite_arguments,
@@ -136,6 +137,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "baselines 'immediate+shield', 'random+shield', 'gap_acceptance+shield'; docs/safety.md)")  # fmt: skip
     parser.add_argument("--shield-mode", "--safety-mode", dest="shield_mode", choices=SAFETY_MODES, default=None,
                         help="replace or mask for the shielded rows (default: the config's env.safety.mode)")  # fmt: skip
+    parser.add_argument("--shield-networks", dest="shield_networks", nargs="+", default=None, metavar="NETWORK",
+                        help="the networks that get the shielded rows (default: every one of --networks); the "
+                        "others keep the paper's rows only")  # fmt: skip
     parser.add_argument("--shield-only", dest="shield_only", action="store_true",
                         help="run only the shielded rows (the unshielded ones are reused when present)")  # fmt: skip
     add_backend_arguments(parser)
@@ -425,12 +429,22 @@ def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dic
 
 
 def run(args: argparse.Namespace) -> int:
-    methods = methods_by_name(args.methods)
+    paper_methods = methods_by_name(args.methods)
+    shielded: list[Method] = []
     if args.shield != "none":  # the shielded twins (Table 3 gains rows; the paper's rows stay)
-        shielded = [shielded_method(m, args.shield, args.shield_mode) for m in methods]
-        methods = shielded if args.shield_only else methods + shielded
-    elif args.shield_only:
-        raise SystemExit("der table3: --shield-only needs --shield rss or --shield sumo")
+        shielded = [shielded_method(m, args.shield, args.shield_mode) for m in paper_methods]
+    elif args.shield_only or args.shield_networks:
+        raise SystemExit("der table3: --shield-only / --shield-networks need --shield rss or --shield sumo")
+    shield_nets = set(args.networks if args.shield_networks is None else args.shield_networks)
+    stray = sorted(shield_nets - set(args.networks))
+    if stray:
+        raise SystemExit(f"der table3: --shield-networks {stray[0]!r} is not one of --networks ({', '.join(args.networks)})")
+
+    def net_methods(net: str) -> list[Method]:
+        twins = shielded if net in shield_nets else []
+        return twins if args.shield_only else paper_methods + twins
+
+    methods = paper_methods + shielded  # every label
     seeds = suite_seeds(args)
     overrides = suite_overrides(args)
     configs = {"ring": args.config, "urban": args.urban_config, "exit": args.exit_config}
@@ -447,11 +461,11 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"der table3: --urban-seeds = {args.urban_seeds}, expected 1..{len(seeds)} (--seeds)")
     net_seeds = {net: seeds[: args.urban_seeds] if net == "urban" and args.urban_seeds else seeds for net in args.networks}
     for net in args.networks:
-        specs += plan_runs(configs[net], methods, net_seeds[net], args.out, overrides, group=net)
+        specs += plan_runs(configs[net], net_methods(net), net_seeds[net], args.out, overrides, group=net)
     summaries = run_specs(specs, backend=backend_from_args(args), train=args.train)
     if report_interrupted("table3", summaries):
         return 130
-    results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in methods} for net in args.networks}
+    results: dict[str, dict[str, list[RunResult]]] = {net: {m.name: [] for m in net_methods(net)} for net in args.networks}
     for spec in specs:
         results[spec.group][spec.method.name].append(load_result(spec, ()))
     baselines: dict[str, dict[str, EvalResult]] = {}
@@ -465,7 +479,7 @@ def run(args: argparse.Namespace) -> int:
             for name in baseline_names(cfg.env):
                 jobs.append((net, baseline_job(cfg.env, name, episodes, cfg.train.eval_episodes_per_seed,
                                                cfg.train.eval_seed_base, folder / name, rule_params(name, net, params_file))))  # fmt: skip
-            if args.shield != "none":
+            if args.shield != "none" and net in shield_nets:
                 env_s = shielded_env_config(cfg.env, args.shield, args.shield_mode)
                 for name in SHIELDED_BASELINES:
                     jobs.append((net, baseline_job(env_s, name + SHIELD_SUFFIX, episodes, cfg.train.eval_episodes_per_seed,
@@ -490,6 +504,7 @@ def run(args: argparse.Namespace) -> int:
     if args.shield != "none":
         extra += ["--shield", args.shield] + (["--shield-mode", args.shield_mode] if args.shield_mode else [])
         extra += ["--shield-only"] if args.shield_only else []
+        extra += ["--shield-networks", *args.shield_networks] if args.shield_networks is not None else []
     md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
                           steps, total_training_time(results), b_labels)  # fmt: skip
     figures = []
