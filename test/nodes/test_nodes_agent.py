@@ -58,6 +58,8 @@ class FakeBridge:
         wait_for(  # our writers matched the agent's readers (count_subscribers above is only the graph's view)
             lambda: self.pub_state.get_subscription_count() > 0 and self.pub_reward.get_subscription_count() > 0,
             30, what="our state/reward writers to match the agent's readers", procs=[self.proc])
+        # and it finished setting up (torch, warm-up): on a loaded machine that took longer than one answer's wait
+        wait_for(lambda: "agent ready" in self.proc.output(), 120, what="agent ready", procs=[self.proc])
 
     def points(self) -> np.ndarray:
         pts = empty_points()
