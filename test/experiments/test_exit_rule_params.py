@@ -45,40 +45,27 @@ def test_the_shipped_file_holds_the_exits_tuned_rules() -> None:
 
 
 @pytest.mark.parametrize(
-    ("text", "message"),
+    ("load", "text", "message"),
     [
-        ("mobil:\n  ring: {exit_bias: 1}\n", r"b\.yaml: mobil\.exit missing, expected a mapping of MobilParams fields"),
-        ("mobil:\n  exit: {exit_bais: 1}\n", r"b\.yaml: mobil\.exit: unknown keys \['exit_bais'\]"),
-        ("mobil:\n  exit: {exit_bias: lots}\n", r"b\.yaml: mobil\.exit\.exit_bias = 'lots', expected a finite number"),
-        ("mobil:\n  exit: {safe_decel: -4}\n", r"b\.yaml: mobil\.exit\.safe_decel = -4\.0, expected a value >= 0"),
-        ("mobil:\n  exit: {exit_lookahead: 0}\n", r"b\.yaml: mobil\.exit\.exit_lookahead = 0\.0, expected a value > 0"),
-        ("mobil: [exit]\n", r"b\.yaml: mobil = \['exit'\], expected a mapping of networks"),
+        (load_mobil_params, "mobil:\n  ring: {exit_bias: 1}\n", r"b\.yaml: mobil\.exit missing, expected a mapping of MobilParams fields"),
+        (load_mobil_params, "mobil:\n  exit: {exit_bais: 1}\n", r"b\.yaml: mobil\.exit: unknown keys \['exit_bais'\]"),
+        (load_mobil_params, "mobil:\n  exit: {exit_bias: lots}\n", r"b\.yaml: mobil\.exit\.exit_bias = 'lots', expected a finite number"),
+        (load_mobil_params, "mobil:\n  exit: {safe_decel: -4}\n", r"b\.yaml: mobil\.exit\.safe_decel = -4\.0, expected a value >= 0"),
+        (load_mobil_params, "mobil:\n  exit: {exit_lookahead: 0}\n", r"b\.yaml: mobil\.exit\.exit_lookahead = 0\.0, expected a value > 0"),
+        (load_mobil_params, "mobil: [exit]\n", r"b\.yaml: mobil = \['exit'\], expected a mapping of networks"),
+        (load_sumo_tuned_params, "gap_acceptance: {}\n", r"b\.yaml: sumo_tuned\.exit missing, expected a mapping of SUMO lane-change parameters"),
+        (load_sumo_tuned_params, "sumo_tuned:\n  exit: {lcAssertiv: 3}\n", r"b\.yaml: sumo_tuned\.exit: unknown keys \['lcAssertiv'\]"),
+        (load_sumo_tuned_params, "sumo_tuned:\n  exit: {lcAssertive: .nan}\n", r"b\.yaml: sumo_tuned\.exit\.lcAssertive = nan, expected a finite"),
+        (load_sumo_tuned_params, "sumo_tuned:\n  exit: {lcAssertive: 0}\n", r"b\.yaml: sumo_tuned\.exit\.lcAssertive = 0\.0, expected a value > 0"),
+        (load_sumo_tuned_params, "sumo_tuned:\n  exit: {lcStrategic: true}\n", r"b\.yaml: sumo_tuned\.exit\.lcStrategic = True, expected a finite"),
+        (load_sumo_tuned_params, "sumo_tuned:\n  exit: {}\n", r"b\.yaml: sumo_tuned\.exit is empty"),
     ],
 )
-def test_a_malformed_mobil_section_is_one_line_naming_file_and_field(tmp_path: Path, text: str, message: str) -> None:
+def test_a_malformed_section_is_one_line_naming_file_and_field(tmp_path: Path, load, text: str, message: str) -> None:  # noqa: ANN001
     f = tmp_path / "b.yaml"
     f.write_text(text)
     with pytest.raises(ConfigError, match=message) as err:
-        load_mobil_params("exit", f)
-    assert "\n" not in str(err.value)
-
-
-@pytest.mark.parametrize(
-    ("text", "message"),
-    [
-        ("gap_acceptance: {}\n", r"b\.yaml: sumo_tuned\.exit missing, expected a mapping of SUMO lane-change parameters"),
-        ("sumo_tuned:\n  exit: {lcAssertiv: 3}\n", r"b\.yaml: sumo_tuned\.exit: unknown keys \['lcAssertiv'\]"),
-        ("sumo_tuned:\n  exit: {lcAssertive: .nan}\n", r"b\.yaml: sumo_tuned\.exit\.lcAssertive = nan, expected a finite"),
-        ("sumo_tuned:\n  exit: {lcAssertive: 0}\n", r"b\.yaml: sumo_tuned\.exit\.lcAssertive = 0\.0, expected a value > 0"),
-        ("sumo_tuned:\n  exit: {lcStrategic: true}\n", r"b\.yaml: sumo_tuned\.exit\.lcStrategic = True, expected a finite"),
-        ("sumo_tuned:\n  exit: {}\n", r"b\.yaml: sumo_tuned\.exit is empty"),
-    ],
-)
-def test_a_malformed_sumo_tuned_section_is_one_line_naming_file_and_field(tmp_path: Path, text: str, message: str) -> None:
-    f = tmp_path / "b.yaml"
-    f.write_text(text)
-    with pytest.raises(ConfigError, match=message) as err:
-        load_sumo_tuned_params("exit", f)
+        load("exit", f)
     assert "\n" not in str(err.value)
 
 
