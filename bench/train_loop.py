@@ -224,10 +224,37 @@ def our_loop(cfg: ExperimentConfig) -> tuple[float, float, float, int, float, fl
     return n / (t_end - t1), n / (c_end - c1), summary.steps / (t_end - t0), summary.episodes, training, t_end - t_last
 
 
+def sb3_dqn(env: Any, cfg: ExperimentConfig, steps: int, gradient_steps: int) -> Any:
+    """Stable-Baselines3's DQN with this config's settings (the peer of sb3_loop and sb3_vec_loop)."""
+    from stable_baselines3 import DQN
+
+    a = cfg.agent
+    return DQN(
+        "MlpPolicy",
+        env,
+        learning_rate=a.lr,
+        buffer_size=cfg.replay.capacity,
+        learning_starts=a.learning_starts,
+        batch_size=a.batch_size,
+        tau=a.tau,
+        gamma=a.gamma,
+        train_freq=a.train_freq,
+        gradient_steps=gradient_steps,
+        target_update_interval=a.target_update_interval,
+        exploration_fraction=min(1.0, a.epsilon_decay_steps / steps),
+        exploration_initial_eps=a.epsilon_start,
+        exploration_final_eps=a.epsilon_end,
+        max_grad_norm=a.max_grad_norm,
+        policy_kwargs={"net_arch": list(a.hidden_sizes)},
+        seed=cfg.train.seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
 def sb3_loop(cfg: ExperimentConfig) -> tuple[float, float, float]:
     """Decisions per second after learning starts (wall, CPU) and of the whole run (wall) of SB3's
     DQN with the same settings."""
-    from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
 
     a, steps = cfg.agent, cfg.train.total_steps
@@ -244,27 +271,7 @@ def sb3_loop(cfg: ExperimentConfig) -> tuple[float, float, float]:
 
     env = make_env_from_config(cfg.env, cfg.train.seed)
     try:
-        model = DQN(
-            "MlpPolicy",
-            env,
-            learning_rate=a.lr,
-            buffer_size=cfg.replay.capacity,
-            learning_starts=a.learning_starts,
-            batch_size=a.batch_size,
-            tau=a.tau,
-            gamma=a.gamma,
-            train_freq=a.train_freq,
-            gradient_steps=a.gradient_steps,
-            target_update_interval=a.target_update_interval,
-            exploration_fraction=min(1.0, a.epsilon_decay_steps / steps),
-            exploration_initial_eps=a.epsilon_start,
-            exploration_final_eps=a.epsilon_end,
-            max_grad_norm=a.max_grad_norm,
-            policy_kwargs={"net_arch": list(a.hidden_sizes)},
-            seed=cfg.train.seed,
-            device="cpu",
-            verbose=0,
-        )
+        model = sb3_dqn(env, cfg, steps, gradient_steps=cfg.agent.gradient_steps)
         clock = Clock()
         t0 = time.perf_counter()
         model.learn(total_timesteps=steps, callback=clock)
@@ -281,7 +288,6 @@ def sb3_vec_loop(cfg: ExperimentConfig, n_envs: int) -> float:
     envs (one gradient step per decision collected: ``gradient_steps=-1``)."""
     import functools
 
-    from stable_baselines3 import DQN
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
@@ -299,27 +305,7 @@ def sb3_vec_loop(cfg: ExperimentConfig, n_envs: int) -> float:
 
     env = SubprocVecEnv([functools.partial(make_env_from_config, cfg.env, cfg.train.seed + k) for k in range(n_envs)])
     try:
-        model = DQN(
-            "MlpPolicy",
-            env,
-            learning_rate=a.lr,
-            buffer_size=cfg.replay.capacity,
-            learning_starts=a.learning_starts,
-            batch_size=a.batch_size,
-            tau=a.tau,
-            gamma=a.gamma,
-            train_freq=a.train_freq,
-            gradient_steps=-1,
-            target_update_interval=a.target_update_interval,
-            exploration_fraction=min(1.0, a.epsilon_decay_steps / steps),
-            exploration_initial_eps=a.epsilon_start,
-            exploration_final_eps=a.epsilon_end,
-            max_grad_norm=a.max_grad_norm,
-            policy_kwargs={"net_arch": list(a.hidden_sizes)},
-            seed=cfg.train.seed,
-            device="cpu",
-            verbose=0,
-        )
+        model = sb3_dqn(env, cfg, steps, gradient_steps=-1)  # SB3: -1 = as many as env steps per rollout
         clock = Clock()
         model.learn(total_timesteps=steps, callback=clock)
         t_end = time.perf_counter()
