@@ -8,9 +8,10 @@ Traffic and resets
 The background traffic comes from the scenario's demand files (flows) and keeps running between
 episodes. ``reset(seed=s)`` reloads the simulation with SUMO seed drawn from ``s`` and puts back the
 *warmed state* of that traffic seed: ``warmup_seconds`` of traffic saved once with SUMO's random
-number state (``--save-state.rng``) under ``<network build>/states/<seed>_w<warm-up>_dt<step>.xml``, so the first seeded
-reset of a traffic seed costs the warm-up (~0.5 s for the exit scenario) and every later one a
-``load`` + ``loadState``; a seeded reset is a pure function of ``s``. A reset without a seed keeps the
+number state (``--save-state.rng``) under ``<network build>/states/<seed>_w<warm-up>_dt<step>_f.xml`` by a
+fresh process (:mod:`sumo_bridge.traffic_state`: the file does not depend on what ran before), so the
+first seeded reset of a traffic seed costs a Python start and the warm-up (~1.5 s for the exit scenario)
+and every later one a ``load`` + ``loadState``; a seeded reset is a pure function of ``s``. A reset without a seed keeps the
 traffic running: the last ego is removed, ``ego_gap_seconds`` of traffic run, and the next ego is
 taken over -- no network reload (see bench/README.md for the times).
 
@@ -41,12 +42,12 @@ target).
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
 from sumo_bridge.scenario import lane_change_params
 from sumo_bridge.scenario_file import ScenarioSpec
+from sumo_bridge.traffic_state import save_warm_state
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +88,8 @@ class FlowScenarioMixin:
         # the network directory is keyed by the sources and demand; the warm-up and the step are in the name
         assert self._spec is not None
         warm, dt = self._spec.traffic.warmup_seconds, self.config.step_length
-        return Path(self.network.directory) / "states" / f"{sumo_seed}_w{warm:g}_dt{dt:g}.xml"
+        # "_f": made by a fresh process (states saved in-process before 2026-12-07 are not reused)
+        return Path(self.network.directory) / "states" / f"{sumo_seed}_w{warm:g}_dt{dt:g}_f.xml"
 
     def _load_warm_state(self) -> None:
         """Load (a fresh SUMO seed from the env's RNG) and put back that seed's warmed traffic."""
@@ -95,16 +97,8 @@ class FlowScenarioMixin:
         assert spec is not None and self._rng is not None
         sumo_seed = int(self._rng.integers(0, 2**31 - 1))
         state = self._state_file(sumo_seed)
-        if not state.is_file():
-            self.sim.load(self._sumo_args(sumo_seed))
-            self.api.simulation.subscribe([self._v_departed, self._v_colliding])
-            self._warmup(spec.traffic.warmup_seconds)
-            state.parent.mkdir(parents=True, exist_ok=True)
-            tmp = state.with_name(f"{state.stem}.{os.getpid()}.{id(self)}.tmp.xml")
-            api.simulation.saveState(str(tmp))
-            tmp.replace(state)
-        # a fresh load + the saved state also right after saving: the simulation carries more than the
-        # state file holds, so the first reset of a traffic seed is made the same as every later one
+        if not state.is_file():  # made by a fresh process, so that it is the same wherever it is made
+            save_warm_state(self._sumo_args(sumo_seed, gui=False), self._steps(spec.traffic.warmup_seconds), state)
         self.sim.load(self._sumo_args(sumo_seed))
         if not self._offsets:
             self._build_corridor()

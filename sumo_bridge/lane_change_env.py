@@ -296,8 +296,10 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._reset_episode_state()
 
     # ------------------------------------------------------------------ helpers
-    def _sumo_args(self, seed: int) -> list[str]:
+    def _sumo_args(self, seed: int, gui: bool | None = None) -> list[str]:
+        """SUMO's command line for traffic seed ``seed`` (``gui``: the GUI's own options; default the config's)."""
         cfg = self.config
+        gui = cfg.gui if gui is None else gui
         return [
             "-n", str(self.network.net_file),
             "-r", ",".join(str(p) for p in self._spec.demand) if self._spec is not None else str(self.network.route_file),
@@ -310,7 +312,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
-            *(["--start", "true", "--quit-on-end", "true"] if cfg.gui else []),
+            *(["--start", "true", "--quit-on-end", "true"] if gui else []),
             *(["--save-state.rng", "true"] if self._spec is not None else []),
             *cfg.sumo_args,
         ]  # fmt: skip

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 from der_ros import cli
@@ -147,6 +148,31 @@ def test_tiny_user_scenario_passes_check_env_and_has_speed_actions() -> None:
         a = _episodes(env, [7], 1)
         b = _episodes(env, [7], 1)
         assert a == b
+    finally:
+        env.close()
+
+
+def test_warmed_state_does_not_depend_on_what_the_process_ran_before() -> None:
+    """A traffic seed's saved state is the same whether it is the first thing the process makes or comes
+    after other episodes (sumo_bridge.traffic_state): SUMO's RNG counters at save time once carried the
+    process's history, so a cache filled in another order continued the traffic with other draws."""
+    from sumo_bridge.traffic_state import state_body
+
+    env = make_scenario_env(scenario={"file": str(TINY / "tiny.yaml")})
+    try:
+        env.reset(seed=3)
+        seed_of_5 = int(np.random.default_rng(5).integers(0, 2**31 - 1))  # the env's first draw after reset(seed=5)
+        env.reset(seed=5)
+        first = env._state_file(seed_of_5)
+        body = state_body(first)
+        for _ in range(3):  # more history: episodes on other traffic seeds
+            env.reset(seed=11)
+            for _t in range(20):
+                env.step(0)
+        first.unlink()
+        env.reset(seed=5)  # the state is made again, after all that
+        assert first.is_file() and state_body(first) == body
+        assert 'name="seed"' in body or "rng" in body.lower()  # the state carries the RNG (the point of the test)
     finally:
         env.close()
 
