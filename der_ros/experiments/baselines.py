@@ -192,8 +192,9 @@ def _per_env(rule: Any) -> Policy:
 
 
 def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int = 0,
-                    mobil: MobilParams | None = None) -> Policy:
-    """The batched policy of baseline ``name`` (points-based for SUMO, observation-based for CartPole)."""
+                    mobil: MobilParams | None = None, n_actions: int | None = None) -> Policy:
+    """The batched policy of baseline ``name`` (points-based for SUMO, observation-based for CartPole);
+    ``n_actions``: the env's action count, which ``random`` draws from (default 3 for SUMO, 2 for CartPole)."""
     if name == "keep":
         return _per_env(keep_policy)
     if name in ("immediate", "sumo", "sumo_tuned"):
@@ -206,7 +207,7 @@ def baseline_policy(name: str, gap: GapAcceptanceParams | None = None, seed: int
         return _per_env(lambda p: gap_acceptance_policy(p, g.lead_gap, g.follow_gap, g.time_headway))
     if name == "random":
         rng = np.random.default_rng(seed)
-        return lambda obs, infos: [int(a) for a in rng.integers(0, 3 if "points" in infos[0] else 2, size=len(obs))]
+        return lambda obs, infos: [int(a) for a in rng.integers(0, n_actions or (3 if "points" in infos[0] else 2), size=len(obs))]
     if name == "constant":
         return lambda obs, infos: [0] * len(obs)
     if name == "scripted":
@@ -271,7 +272,8 @@ def evaluate_baseline(
             for i in range(1 if is_sumo else parallel_envs)]  # fmt: skip
     try:
         by_route = name in ("sumo", "sumo_tuned") and _goal_by_route(env_cfg)
-        policy = baseline_policy("keep" if by_route else name, gap, mobil=params if name == "mobil" else None)
+        policy = baseline_policy("keep" if by_route else name, gap, mobil=params if name == "mobil" else None,
+                                 n_actions=int(envs[0].action_space.n))  # exit: random draws the speed actions too
         eps = run_episodes(policy, envs, seeds, episodes, episodes_per_seed)
     finally:
         for env in envs:

@@ -53,3 +53,14 @@ def test_der_baselines_runs_mobil_and_sumo_tuned_on_exit(tmp_path: Path, capsys:
         meta = json.loads((folder / "baseline.json").read_text())
         frozen = rule_params(name, "exit")
         assert meta["params"] == (frozen if name == "sumo_tuned" else frozen.__dict__ | {"idm": frozen.idm.__dict__})
+
+
+def test_random_baseline_draws_every_action_of_the_env() -> None:
+    """On exit (five actions) `random` draws the speed actions too; without n_actions it keeps the paper's three."""
+    from der_ros.experiments.baselines import baseline_policy
+
+    obs, infos = [None] * 400, [{"points": None}] * 400
+    assert set(baseline_policy("random", seed=1, n_actions=5)(obs, infos)) == {0, 1, 2, 3, 4}
+    assert set(baseline_policy("random", seed=1)(obs, infos)) == {0, 1, 2}
+    # same seed, three actions: the ring's and urban's draws are what they were
+    assert baseline_policy("random", seed=1, n_actions=3)(obs, infos) == baseline_policy("random", seed=1)(obs, infos)
