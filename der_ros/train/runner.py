@@ -45,19 +45,10 @@ from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.env_pool import EnvPool
 from der_ros.train.env_process import EnvProcess, use_env_process
 from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
-from der_ros.train.evaluation import (
-    EVALUATIONS_CSV,
-    FINAL_EVAL_JSON,
-    EvalResult,
-    Evaluator,
-    check_training_seed,
-    make_evaluator,
-    net_state,
-    resolve_eval_mode,
-    training_env_seed,
-    truncate_evaluations,
-    write_eval_row,
-)
+from der_ros.train.eval_policies import net_state
+from der_ros.train.eval_result import EVALUATIONS_CSV, FINAL_EVAL_JSON, EvalResult, truncate_evaluations, write_eval_row
+from der_ros.train.eval_seeds import check_training_seed, training_env_seed
+from der_ros.train.evaluation import Evaluator, make_evaluator, resolve_eval_mode
 from der_ros.train.metrics import MeanAccumulator, MetricsWriter, drop_metric_rows
 from der_ros.train.resume import load_resume_point
 from der_ros.train.scores import max_moving_average

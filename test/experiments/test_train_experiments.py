@@ -273,7 +273,7 @@ def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path
 def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
     unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""
-    from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
+    from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
 
     base = ["sweep", str(REPO / "config" / "cartpole.yaml"), "--grid", "agent.gamma=0.9,0.98", "--seeds", "1",
             "--jobs", "2", "--set", "train.total_steps=150", "--set", "agent.learning_starts=50",
