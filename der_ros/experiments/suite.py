@@ -37,7 +37,7 @@ import numpy as np
 
 import der_ros
 from der_ros.experiments.run_compare import finished_run
-from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
+from der_ros.train.config import ExperimentConfig, add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
 
 __all__ = [
@@ -122,6 +122,10 @@ class RunSpec:
         out["train.progress"] = False
         return out
 
+    def resolved_config(self) -> ExperimentConfig:
+        """The run's config: the file with :meth:`all_overrides` applied (ConfigError if it is invalid)."""
+        return load_experiment_config(self.config_path, self.all_overrides())
+
     def command(self) -> str:
         """The equivalent ``der train`` command line (written to the run directory)."""
         parts = ["der", "train", "--config", self.config_path]
@@ -139,10 +143,6 @@ class RunResult:
     episode_steps: np.ndarray
     returns: np.ndarray
     metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-
-def _resolve(spec: RunSpec) -> Any:
-    return load_experiment_config(spec.config_path, spec.all_overrides())
 
 
 def run_one(
@@ -163,7 +163,7 @@ def run_one(
     from der_ros.train.runner import CHECKPOINT_NAME, train
 
     torch.set_num_threads(1)
-    cfg = cfg if cfg is not None else _resolve(spec)
+    cfg = cfg if cfg is not None else spec.resolved_config()
     run_dir = Path(run_dir if run_dir is not None else spec.run_dir)
     if finished_run(run_dir, cfg):
         return json.loads((run_dir / "summary.json").read_text()) | {"skipped": True}

@@ -25,7 +25,7 @@ from der_ros.experiments.backends.local import LocalBackend
 from der_ros.experiments.backends.ray_cluster import RayBackend
 from der_ros.experiments.backends.suite_progress import SuiteProgress
 from der_ros.experiments.run_compare import finished_run
-from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError, _resolve
+from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError
 
 __all__ = [
     "BACKENDS",
@@ -64,7 +64,7 @@ def run_specs(
     """
     todo = []
     for spec in specs:
-        cfg = _resolve(spec)  # raises ConfigError before any run starts
+        cfg = spec.resolved_config()  # raises ConfigError before any run starts
         if finished_run(Path(spec.run_dir), cfg):  # ConfigError if it holds a run of other settings
             log.info("skip finished run %s", spec.run_dir)
         else:
