@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from der_ros.train.evaluation import EVALUATIONS_CSV, FINAL_EVAL_JSON, EvalResult, read_evaluations
+from der_ros.train.eval_result import EVALUATIONS_CSV, FINAL_EVAL_JSON, EvalResult, read_evaluations
 
 __all__ = [
     "Interval",

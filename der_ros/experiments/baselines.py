@@ -3,7 +3,7 @@
 A learned policy that does not beat "never change lane" means the task or the objective is
 broken, not that the method is weak; one that does not beat a simple gap-acceptance rule or
 SUMO's own lane-change model is not worth deploying. So every table evaluates, on the very same
-evaluation seeds as the learned agents (:mod:`der_ros.train.evaluation`):
+evaluation seeds as the learned agents (:mod:`der_ros.train.eval_seeds`):
 
 SUMO lane change (``der_ros/LaneChange*``):
 
@@ -59,14 +59,10 @@ from der_ros.experiments.table_report import write_markdown
 from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import (
-    EVAL_SEED_BASE,
-    TUNING_EVAL_SEED_BASE,
-    EvalResult,
-    Policy,
-    evaluation_seeds,
-    run_episodes,
-)
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_policies import Policy
+from der_ros.train.eval_result import EvalResult
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE, evaluation_seeds
 from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.mobil import MobilParams, mobil_policy
 from sumo_bridge.policies import gap_acceptance_policy, immediate_policy, keep_policy

@@ -11,7 +11,7 @@ caused collision / time-limit counts per run and in total:
 a sweep with ``train.final_eval_episodes = --episodes`` would use, so the first ones are the sweep's
 own); ``report`` the report evaluation seeds (``EVAL_SEED_BASE + k``), for a finished report run
 (the first ones are then the table's own evaluation). ``--out DIR`` also saves each run's episodes as
-``DIR/<method>/<seed dir>/evaluation.json`` (:class:`~der_ros.train.evaluation.EvalResult`), which
+``DIR/<method>/<seed dir>/evaluation.json`` (:class:`~der_ros.train.eval_result.EvalResult`), which
 research/tuning/compare_arms.py compares situation by situation.
 
 Under other traffic, or with the shield switched: ``--traffic YAML`` evaluates every run in the ``env``
@@ -38,15 +38,10 @@ from der_ros.configuration import ConfigError
 from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import (
-    EVAL_SEED_BASE,
-    TUNING_EVAL_SEED_BASE,
-    EpisodeResult,
-    EvalResult,
-    GreedyQPolicy,
-    evaluation_seeds,
-    run_episodes,
-)
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_result import EpisodeResult, EvalResult
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE, evaluation_seeds
 
 __all__ = ["add_arguments", "evaluate_run", "run"]
 

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from der_ros.experiments.stats import paired_permutation_p
-from der_ros.train.evaluation import EvalResult
+from der_ros.train.eval_result import EvalResult
 
 __all__ = ["PairedCounts", "paired_counts"]
 

@@ -1,4 +1,16 @@
-"""What "the same run" means across backends, machines and resumptions: the files minus timings.
+"""Is this the same finished run? The one answer, for the suites, their backends and the benchmarks.
+
+Three questions, one function each:
+
+* **Same settings** (:func:`check_same_settings`): a run directory's ``config.yaml`` holds the
+  settings of ``cfg``, apart from where and how the run is written or shown
+  (:data:`NOT_RESULT_FIELDS`); a SUMO scenario field missing there, added after the run was made,
+  counts as its default (:func:`resolved_settings`). Other settings raise a ``ConfigError`` naming
+  the fields, so a changed config with an old ``--out`` is never reported under the new settings.
+* **Finished** (:func:`finished_run`): same settings, and ``summary.json`` says the run reached
+  ``train.total_steps`` without an interruption. The suites skip such a run and resume any other.
+* **Same files** (:func:`comparable_run`, :func:`run_differences`): two runs of one spec, on any
+  backend or machine, after any resumption, wrote the same files apart from timings.
 
 Training is deterministic per seed on CPU (one torch thread, seeded env, agent and replay
 RNGs), so two runs of the same spec write the same files bit for bit, except for what measures
@@ -35,8 +47,104 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["comparable_run", "run_differences", "TIMING_METRICS"]
+from der_ros.configuration import ConfigError, flatten_names, to_dict
+from der_ros.train.config import ExperimentConfig, load_experiment_config
+from sumo_bridge import ENV_NETWORKS
+from sumo_bridge.scenario_file import scenario_from_kwargs
 
+__all__ = [
+    "NOT_RESULT_FIELDS",
+    "resolved_settings",
+    "check_same_settings",
+    "finished_run",
+    "comparable_run",
+    "run_differences",
+    "TIMING_METRICS",
+]
+
+# ----------------------------------------------------------------------------- same settings, finished
+#: settings that say where and how a run is written or shown, not what it computes
+NOT_RESULT_FIELDS = frozenset(
+    f"train.{name}"
+    for name in (
+        "run_dir",
+        "runs_root",
+        "progress",
+        "device",
+        "threads",
+        "env_process",
+        "log_interval",
+        "checkpoint_interval",
+        "tensorboard",
+        "save_final_checkpoint",
+    )
+)
+
+
+def resolved_settings(cfg: ExperimentConfig) -> dict[str, Any] | None:
+    """``cfg.to_dict()`` with a SUMO scenario completed by its defaults (None: the current code
+    cannot read that scenario, e.g. a field since removed).
+
+    The env's keyword arguments are stored as written, so a scenario field added after a run was made
+    is missing from that run's ``config.yaml``; completed here, "missing" and "the default" compare
+    equal (new fields default to the behaviour that came before them).
+    """
+    data = cfg.to_dict()
+    network = ENV_NETWORKS.get(cfg.env.id)
+    kwargs = data["env"]["kwargs"]
+    if network is None or not isinstance(kwargs, dict) or set(kwargs) - {"scenario", "render_mode"}:
+        return data
+    try:
+        scenario = to_dict(scenario_from_kwargs(network, dict(kwargs.get("scenario") or {})))
+    except ConfigError:
+        return None
+    data["env"]["kwargs"] = {**kwargs, "scenario": scenario}
+    return data
+
+
+def check_same_settings(run_dir: Path, cfg: ExperimentConfig) -> None:
+    """Refuse to reuse or resume a run directory made with other settings (its ``config.yaml``).
+
+    A finished run is otherwise skipped whatever the config says, so a changed config file with an
+    old ``--out`` would quietly report the old runs under the new settings.
+    """
+    saved = run_dir / "config.yaml"
+    if not saved.is_file():
+        return
+    saved_cfg = load_experiment_config(saved)
+    old, new = resolved_settings(saved_cfg), resolved_settings(cfg)
+    if old is None or new is None:  # one side unreadable today: compare both as written
+        old, new = saved_cfg.to_dict(), cfg.to_dict()
+    old, new = flatten_names(old), flatten_names(new)
+    changed = sorted(k for k in old.keys() | new.keys() if k not in NOT_RESULT_FIELDS and old.get(k) != new.get(k))
+    if changed:
+        shown = "; ".join(f"{k} = {old.get(k)!r} there, {new.get(k)!r} now" for k in changed[:5])
+        more = f" (and {len(changed) - 5} more)" if len(changed) > 5 else ""
+        raise ConfigError(
+            f"{run_dir} holds a run made with other settings: {shown}{more}. "
+            "Use another --out, or delete that run directory to redo it."
+        )
+
+
+def finished_run(run_dir: Path, cfg: ExperimentConfig) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``cfg``; a run of other settings raises ConfigError.
+
+    Finished: ``summary.json`` (written by :func:`der_ros.train.runner.train`) reports
+    ``cfg.train.total_steps`` steps or more and no interruption. A missing or unreadable summary is
+    not finished (the run resumes from its checkpoint, or starts again)."""
+    check_same_settings(run_dir, cfg)
+    total_steps = cfg.train.total_steps
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        return False
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return not s.get("interrupted", True) and int(s.get("steps", 0)) >= total_steps
+
+
+# ----------------------------------------------------------------------------- same files
 #: metrics.csv rows that measure speed
 TIMING_METRICS = ("charts/steps_per_s",)
 

@@ -10,9 +10,10 @@ groups, e.g. one per Atari game). The suite is resumable:
 * anything else starts fresh.
 
 Either way the run directory's ``config.yaml`` must hold the same settings (apart from where and how
-the run is written or shown, ``_NOT_RESULT_FIELDS``; a SUMO scenario field missing there, added
-after the run was made, counts as its default): a run made with other settings is refused with a
-``ConfigError`` naming the fields, never reported under the new ones.
+the run is written or shown; a SUMO scenario field missing there, added after the run was made,
+counts as its default): a run made with other settings is refused with a ``ConfigError`` naming the
+fields, never reported under the new ones. Both rules, "finished" and "same settings", are
+:func:`der_ros.experiments.run_compare.finished_run`.
 
 Ctrl-C: every worker gets the SIGINT too, finishes its current step, writes a checkpoint and
 stops; queued runs are cancelled. Rerunning the same command continues where it stopped.
@@ -35,11 +36,9 @@ from typing import Any
 import numpy as np
 
 import der_ros
-from der_ros.configuration import ConfigError, flatten_names, to_dict
-from der_ros.train.config import add_set_argument, load_experiment_config, parse_assignments
+from der_ros.experiments.run_compare import finished_run
+from der_ros.train.config import ExperimentConfig, add_set_argument, load_experiment_config, parse_assignments
 from der_ros.train.metrics import read_episodes_csv, read_metrics_csv
-from sumo_bridge import ENV_NETWORKS
-from sumo_bridge.scenario_file import scenario_from_kwargs
 
 __all__ = [
     "Method",
@@ -123,6 +122,10 @@ class RunSpec:
         out["train.progress"] = False
         return out
 
+    def resolved_config(self) -> ExperimentConfig:
+        """The run's config: the file with :meth:`all_overrides` applied (ConfigError if it is invalid)."""
+        return load_experiment_config(self.config_path, self.all_overrides())
+
     def command(self) -> str:
         """The equivalent ``der train`` command line (written to the run directory)."""
         parts = ["der", "train", "--config", self.config_path]
@@ -140,87 +143,6 @@ class RunResult:
     episode_steps: np.ndarray
     returns: np.ndarray
     metrics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-
-#: settings that say where and how a run is written or shown, not what it computes
-_NOT_RESULT_FIELDS = frozenset(
-    f"train.{name}"
-    for name in (
-        "run_dir",
-        "runs_root",
-        "progress",
-        "device",
-        "threads",
-        "env_process",
-        "log_interval",
-        "checkpoint_interval",
-        "tensorboard",
-        "save_final_checkpoint",
-    )
-)
-
-
-def _resolved_settings(cfg: Any) -> dict[str, Any] | None:
-    """``cfg.to_dict()`` with a SUMO scenario completed by its defaults (None: the current code
-    cannot read that scenario, e.g. a field since removed).
-
-    The env's keyword arguments are stored as written, so a scenario field added after a run was made
-    is missing from that run's ``config.yaml``; completed here, "missing" and "the default" compare
-    equal (new fields default to the behaviour that came before them).
-    """
-    data = cfg.to_dict()
-    network = ENV_NETWORKS.get(cfg.env.id)
-    kwargs = data["env"]["kwargs"]
-    if network is None or not isinstance(kwargs, dict) or set(kwargs) - {"scenario", "render_mode"}:
-        return data
-    try:
-        scenario = to_dict(scenario_from_kwargs(network, dict(kwargs.get("scenario") or {})))
-    except ConfigError:
-        return None
-    data["env"]["kwargs"] = {**kwargs, "scenario": scenario}
-    return data
-
-
-def _check_same_settings(run_dir: Path, cfg: Any) -> None:
-    """Refuse to reuse or resume a run directory made with other settings (its ``config.yaml``).
-
-    A finished run is otherwise skipped whatever the config says, so a changed config file with an
-    old ``--out`` would quietly report the old runs under the new settings.
-    """
-    saved = run_dir / "config.yaml"
-    if not saved.is_file():
-        return
-    saved_cfg = load_experiment_config(saved)
-    old, new = _resolved_settings(saved_cfg), _resolved_settings(cfg)
-    if old is None or new is None:  # one side unreadable today: compare both as written
-        old, new = saved_cfg.to_dict(), cfg.to_dict()
-    old, new = flatten_names(old), flatten_names(new)
-    changed = sorted(k for k in old.keys() | new.keys() if k not in _NOT_RESULT_FIELDS and old.get(k) != new.get(k))
-    if changed:
-        shown = "; ".join(f"{k} = {old.get(k)!r} there, {new.get(k)!r} now" for k in changed[:5])
-        more = f" (and {len(changed) - 5} more)" if len(changed) > 5 else ""
-        raise ConfigError(
-            f"{run_dir} holds a run made with other settings: {shown}{more}. "
-            "Use another --out, or delete that run directory to redo it."
-        )
-
-
-def _finished(run_dir: Path, cfg: Any) -> bool:
-    """Whether ``run_dir`` holds a finished run of ``cfg``; a run of other settings raises ConfigError."""
-    _check_same_settings(run_dir, cfg)
-    total_steps = cfg.train.total_steps
-    path = run_dir / "summary.json"
-    if not path.is_file():
-        return False
-    try:
-        s = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return False
-    return not s.get("interrupted", True) and int(s.get("steps", 0)) >= total_steps
-
-
-def _resolve(spec: RunSpec) -> Any:
-    return load_experiment_config(spec.config_path, spec.all_overrides())
 
 
 def run_one(
@@ -241,9 +163,9 @@ def run_one(
     from der_ros.train.runner import CHECKPOINT_NAME, train
 
     torch.set_num_threads(1)
-    cfg = cfg if cfg is not None else _resolve(spec)
+    cfg = cfg if cfg is not None else spec.resolved_config()
     run_dir = Path(run_dir if run_dir is not None else spec.run_dir)
-    if _finished(run_dir, cfg):
+    if finished_run(run_dir, cfg):
         return json.loads((run_dir / "summary.json").read_text()) | {"skipped": True}
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "command.txt").write_text(spec.command() + "\n")

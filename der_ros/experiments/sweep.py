@@ -39,7 +39,7 @@ from der_ros.experiments.suite import (
 )
 from der_ros.experiments.table_report import write_markdown
 from der_ros.train.config import add_set_argument, parse_assignments
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE
 from der_ros.yaml_loader import YamlError, load_yaml_text
 
 __all__ = ["add_arguments", "run", "parse_grid", "grid_methods", "score_sweep_run", "RANK_KEYS"]

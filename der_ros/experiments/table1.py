@@ -52,7 +52,7 @@ from der_ros.experiments.suite import (
 from der_ros.experiments.suite_plots import plot_eval_curves, plot_td_traces
 from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 from der_ros.train.config import load_experiment_config
-from der_ros.train.evaluation import EvalResult
+from der_ros.train.eval_result import EvalResult
 
 __all__ = ["PAPER_TABLE1", "BASELINE_LABELS", "add_arguments", "run", "score_run", "write_table1"]
 

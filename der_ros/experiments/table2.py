@@ -28,7 +28,6 @@ from der_ros.experiments.stats import CI, bootstrap_ci, max_moving_average, mean
 from der_ros.experiments.suite import (
     RunResult,
     RunSpec,
-    _resolve,
     add_suite_arguments,
     default_jobs,
     environment_info,
@@ -91,7 +90,7 @@ def default_atari_jobs(specs: Sequence[RunSpec]) -> int:
 
     if not specs:
         return 1
-    cfg = _resolve(specs[0])
+    cfg = specs[0].resolved_config()
     frame = cfg.env.frame_stack * cfg.env.screen_size * cfg.env.screen_size
     h2 = cfg.replay.h2_capacity or 100 * cfg.agent.batch_size
     replay_bytes = 2 * frame * (cfg.replay.capacity + h2)

@@ -80,7 +80,8 @@ from der_ros.experiments.suite_plots import plot_eval_curves
 from der_ros.experiments.table_report import run_details, total_training_time, write_markdown
 from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
 from der_ros.train.config import load_experiment_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, EvalResult
+from der_ros.train.eval_result import EvalResult
+from der_ros.train.eval_seeds import EVAL_SEED_BASE
 
 __all__ = ["PAPER_TABLE3", "NETWORKS", "BASELINE_LABELS", "add_arguments", "run", "score_run", "write_table3"]
 

@@ -32,7 +32,8 @@ from der_ros.safety.checker import RssChecker
 from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import EnvConfig
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_seeds import EVAL_SEED_BASE
 
 __all__ = ["GreedyEpisode", "GIF_NAME", "BAG_NAME", "greedy_episode_gif", "watchable_env_config"]
 

@@ -30,7 +30,7 @@ from der_ros.graph.greedy_episode import GreedyEpisode
 from der_ros.graph.run_progress import ProgressSnapshot
 from der_ros.graph.supervisor import RunOutcome
 from der_ros.offline.bag_plots import plot_bags
-from der_ros.train.evaluation import EvalResult
+from der_ros.train.eval_result import EvalResult
 
 __all__ = ["bridge_summary", "snapshot_from_bag", "report"]
 

@@ -1,6 +1,6 @@
 """Greedy evaluations of the policy a ``der graph`` run is training (ROS-free).
 
-The agent node writes a small policy snapshot (:func:`der_ros.train.evaluation.save_policy`)
+The agent node writes a small policy snapshot (:func:`der_ros.train.eval_policies.save_policy`)
 at start and every ``policy_every`` steps; this module evaluates each one greedily (epsilon = 0)
 on held-out evaluation seeds in a second process with its own SUMO simulation of the bridge's
 scenario (:class:`der_ros.train.evaluation.ProcessEvaluator`), so the graph keeps training while
@@ -19,18 +19,10 @@ from der_ros.agent.config import DQNConfig
 from der_ros.configuration import from_dict
 from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import EnvConfig
-from der_ros.train.evaluation import (
-    EVAL_SEED_BASE,
-    EVALUATIONS_CSV,
-    FINAL_EVAL_JSON,
-    EvalResult,
-    check_disjoint,
-    evaluation_seeds,
-    load_policy,
-    make_evaluator,
-    policy_files,
-    write_eval_row,
-)
+from der_ros.train.eval_policies import load_policy, policy_files
+from der_ros.train.eval_result import EVALUATIONS_CSV, FINAL_EVAL_JSON, EvalResult, write_eval_row
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, check_disjoint, evaluation_seeds
+from der_ros.train.evaluation import make_evaluator
 from sumo_bridge import NETWORK_ENV_IDS, SCENARIO_ENV_ID
 from sumo_bridge.observation import ObservationConfig, observation_size
 

@@ -72,7 +72,7 @@ from der_ros.nodes import node_configs
 from der_ros.nodes.node_configs import AGENT_MUTABLE, AgentNodeConfig
 from der_ros.nodes.params import ConfigParameters
 from der_ros.nodes.spin import run_node
-from der_ros.train.evaluation import save_policy
+from der_ros.train.eval_policies import save_policy
 from sumo_bridge.observation import POINT_FIELDS, empty_points, encode_observation
 
 __all__ = ["AgentNode", "parameter_sections", "main"]

@@ -14,7 +14,7 @@ transition, as with one env (the same replay ratio). What a worker does never de
   :mod:`der_ros.train.runner` acts with the current network, as ever).
 * **Seeds** (derived from ``train.seed`` = s, see :func:`worker_seed`): worker 0's environment stream is
   seeded with s (as the single env's is), worker j > 0's with ``SeedSequence([s, j])`` folded into the
-  training range (below :data:`~der_ros.train.evaluation.TRAINING_SEED_LIMIT`, disjoint from the evaluation
+  training range (below :data:`~der_ros.train.eval_seeds.TRAINING_SEED_LIMIT`, disjoint from the evaluation
   seeds); worker j's exploration RNG is ``default_rng(SeedSequence([s, 7919, j]))``.
 * **Waiting.** The trainer blocks on the worker it needs next (``multiprocessing.connection.wait``) and the
   workers block on their pipe (no polling, ``spin=0``): with N workers and the learner sharing few cores,
@@ -44,7 +44,7 @@ import torch
 
 from der_ros.train.config import MAX_NUM_ENVS
 from der_ros.train.env_process import EnvProcess
-from der_ros.train.evaluation import TRAINING_SEED_LIMIT, training_env_seed
+from der_ros.train.eval_seeds import TRAINING_SEED_LIMIT, training_env_seed
 
 __all__ = ["EnvPool", "LAG_ROUNDS", "MAX_NUM_ENVS", "worker_seed"]
 

@@ -45,21 +45,12 @@ from der_ros.train.config import ExperimentConfig, save_experiment_config
 from der_ros.train.env_pool import EnvPool
 from der_ros.train.env_process import EnvProcess, use_env_process
 from der_ros.train.envs import make_env_from_config, obs_spec, pickle_env_state
-from der_ros.train.evaluation import (
-    EVALUATIONS_CSV,
-    FINAL_EVAL_JSON,
-    EvalResult,
-    Evaluator,
-    check_training_seed,
-    make_evaluator,
-    net_state,
-    resolve_eval_mode,
-    training_env_seed,
-    truncate_evaluations,
-    write_eval_row,
-)
+from der_ros.train.eval_policies import net_state
+from der_ros.train.eval_result import EVALUATIONS_CSV, FINAL_EVAL_JSON, EvalResult, truncate_evaluations, write_eval_row
+from der_ros.train.eval_seeds import check_training_seed, training_env_seed
+from der_ros.train.evaluation import Evaluator, make_evaluator, resolve_eval_mode
 from der_ros.train.metrics import MeanAccumulator, MetricsWriter, drop_metric_rows
-from der_ros.train.resume import load_resume_point
+from der_ros.train.resume import ResumePoint, load_resume_point
 from der_ros.train.scores import max_moving_average
 
 __all__ = ["RunSummary", "train", "default_run_dir", "replay_label"]
@@ -228,272 +219,342 @@ def train(
     simulation per process, and a reused worker process (Ray's) must be able to run the next run.
     """
     with ExitStack() as cleanup:
-        return _train(cfg, run_dir, resume, on_episode, on_checkpoint, cleanup)
+        return _TrainingRun(cfg, run_dir, resume, on_episode, on_checkpoint, cleanup).run()
 
 
-def _train(
-    cfg: ExperimentConfig,
-    run_dir: str | Path | None,
-    resume: str | Path | None,
-    on_episode: Callable[[int, int, float], None] | None,
-    on_checkpoint: Callable[[Path, int], None] | None,
-    cleanup: ExitStack,
-) -> RunSummary:
-    t_cfg = cfg.train
-    check_training_seed(t_cfg.seed)
-    torch.set_num_threads(t_cfg.threads)
-    run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
-    # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
-    # runs before the run directory is created: a failed start writes nothing.
-    eval_process = bool(t_cfg.eval_interval) and resolve_eval_mode(t_cfg.eval_mode, cfg.env.id) == "process"
-    # (auto decides on the whole run's length, the same when it is resumed)
-    in_worker = use_env_process(t_cfg.env_process, cfg.env.id, evaluator_process=eval_process,
-                                total_steps=t_cfg.total_steps)
-    pool: EnvPool | None = None
-    env: Any
-    if t_cfg.num_envs > 1:  # N workers, one learner (module env_pool)
-        env = pool = EnvPool(cfg.env, t_cfg.seed, t_cfg.num_envs)
-        log.info("environment: %d worker processes feeding the learner (train.num_envs)", t_cfg.num_envs)
-    else:
-        env = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
-        log.info("environment %s (train.env_process = %s)", "in a worker process, stepping while the learner updates"
-                 if in_worker else "in this process", "auto" if t_cfg.env_process is None else t_cfg.env_process)
-    cleanup.callback(lambda: env.close())  # the env in use at the end (resuming may replace it), also on a failure
-    obs_shape, obs_dtype = obs_spec(env)
-    n_actions = int(env.action_space.n)
-    point = load_resume_point(resume, obs_shape, n_actions, resolve_device(t_cfg.device)) if resume else None
-    if point is not None:
-        cfg = point.config(cfg)  # a node checkpoint brings its own agent and replay settings
-    agent = DQNAgent(obs_shape, obs_dtype, n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed, device=t_cfg.device)
-    if point is not None:
-        agent.load_state_dict(point.agent_state)
-    target_mask = target_mask_for(cfg.env)  # mask mode: the next state's mask in the target (refused before any write)
-    run_path.mkdir(parents=True, exist_ok=True)
-    save_experiment_config(cfg, run_path / "config.yaml")
-    acc = MeanAccumulator()
+class _TrainingRun:
+    """One run of :func:`train`, read top to bottom in :meth:`run`: set up (environment, agent, the
+    resumed state, output files), then step (act, simulate, store, learn), log, evaluate and
+    checkpoint until ``total_steps`` or a stop, then finish (last checkpoint and evaluation,
+    ``summary.json``).
 
-    episode = 0
-    last_return: float | None = None
-    returns: list[float] = []
-    wall_offset = 0.0
-    obs: np.ndarray
-    resume_step: int | None = None
-    start_info: dict[str, Any] = {}
-    if point is not None and point.runner is not None:
-        runner = point.runner
-        resume_step = agent.steps
-        episode = int(runner["episode"])
-        returns = [float(x) for x in runner["returns"]]
-        last_return = returns[-1] if returns else None
-        wall_offset = float(runner["wall_time"])
-        acc.load_state_dict(runner["accumulator"])
-        if pool is not None:
-            state = runner.get("pool")
-            if state is None or not pool.load_state_dict(state, agent, t_cfg.total_steps):
-                pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
-            obs = pool.workers[0].obs
-        elif point.env_bytes is not None:
-            if isinstance(env, EnvProcess):
-                env.load(point.env_bytes)
+    Every draw of the environment's and the agent's RNGs happens in the order of the loop in
+    :meth:`run`, so a resumed run continues exactly where the full run would be
+    (``test/train``)."""
+
+    def __init__(
+        self,
+        cfg: ExperimentConfig,
+        run_dir: str | Path | None,
+        resume: str | Path | None,
+        on_episode: Callable[[int, int, float], None] | None,
+        on_checkpoint: Callable[[Path, int], None] | None,
+        cleanup: ExitStack,
+    ) -> None:
+        self.t_cfg = t_cfg = cfg.train  # a node checkpoint replaces agent and replay below, never train
+        self.resume = resume
+        self.on_episode = on_episode
+        self.on_checkpoint = on_checkpoint
+        self.cleanup = cleanup
+        check_training_seed(t_cfg.seed)
+        torch.set_num_threads(t_cfg.threads)
+        self.run_path = Path(run_dir or t_cfg.run_dir or default_run_dir(cfg))
+        # Everything that can refuse the config (env id, replay memory, batch vs capacity, the checkpoint)
+        # runs before the run directory is created: a failed start writes nothing.
+        self._open_env(cfg)
+        point = self._build_agent(cfg)
+        self.run_path.mkdir(parents=True, exist_ok=True)
+        save_experiment_config(self.cfg, self.run_path / "config.yaml")
+        self.acc = MeanAccumulator()
+        self._start_state(point)
+        self._open_outputs()
+
+    # ------------------------------------------------------------------------- set-up
+    def _open_env(self, cfg: ExperimentConfig) -> None:
+        """The training environment: in this process, in a worker, or ``train.num_envs`` workers."""
+        t_cfg = self.t_cfg
+        self.eval_process = bool(t_cfg.eval_interval) and resolve_eval_mode(t_cfg.eval_mode, cfg.env.id) == "process"
+        # (auto decides on the whole run's length, the same when it is resumed)
+        in_worker = use_env_process(t_cfg.env_process, cfg.env.id, evaluator_process=self.eval_process,
+                                    total_steps=t_cfg.total_steps)  # fmt: skip
+        self.pool: EnvPool | None = None
+        self.env: Any
+        if t_cfg.num_envs > 1:  # N workers, one learner (module env_pool)
+            self.env = self.pool = EnvPool(cfg.env, t_cfg.seed, t_cfg.num_envs)
+            log.info("environment: %d worker processes feeding the learner (train.num_envs)", t_cfg.num_envs)
+        else:
+            self.env = EnvProcess(cfg.env, t_cfg.seed) if in_worker else make_env_from_config(cfg.env, t_cfg.seed)
+            where = "in a worker process, stepping while the learner updates" if in_worker else "in this process"
+            log.info("environment %s (train.env_process = %s)", where,
+                     "auto" if t_cfg.env_process is None else t_cfg.env_process)  # fmt: skip
+        # the env in use at the end (resuming may replace it), also on a failure
+        self.cleanup.callback(lambda: self.env.close())
+        self.obs_shape, self.obs_dtype = obs_spec(self.env)
+        self.n_actions = int(self.env.action_space.n)
+
+    def _build_agent(self, cfg: ExperimentConfig) -> ResumePoint | None:
+        """The learner, restored from ``resume`` if given; returns the resume point (or None)."""
+        t_cfg = self.t_cfg
+        point: ResumePoint | None = None
+        if self.resume:
+            point = load_resume_point(self.resume, self.obs_shape, self.n_actions, resolve_device(t_cfg.device))
+        if point is not None:
+            cfg = point.config(cfg)  # a node checkpoint brings its own agent and replay settings
+        self.cfg = cfg
+        self.agent = DQNAgent(self.obs_shape, self.obs_dtype, self.n_actions, cfg.agent, cfg.replay, seed=t_cfg.seed,
+                              device=t_cfg.device)  # fmt: skip
+        if point is not None:
+            self.agent.load_state_dict(point.agent_state)
+        # mask mode: the next state's mask in the target (refused before any write)
+        self.target_mask = target_mask_for(cfg.env)
+        return point
+
+    def _start_state(self, point: ResumePoint | None) -> None:
+        """The first observation and the runner's counters: fresh, or as the checkpoint left them."""
+        t_cfg, agent, pool = self.t_cfg, self.agent, self.pool
+        self.episode = 0
+        self.last_return: float | None = None
+        self.returns: list[float] = []
+        self.wall_offset = 0.0
+        self.obs: np.ndarray
+        self.resume_step: int | None = None
+        start_info: dict[str, Any] = {}
+        if point is not None and point.runner is not None:
+            runner = point.runner
+            self.resume_step = agent.steps
+            self.episode = int(runner["episode"])
+            self.returns = [float(x) for x in runner["returns"]]
+            self.last_return = self.returns[-1] if self.returns else None
+            self.wall_offset = float(runner["wall_time"])
+            self.acc.load_state_dict(runner["accumulator"])
+            if pool is not None:
+                state = runner.get("pool")
+                if state is None or not pool.load_state_dict(state, agent, t_cfg.total_steps):
+                    pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
+                self.obs = pool.workers[0].obs
+            elif point.env_bytes is not None:
+                if isinstance(self.env, EnvProcess):
+                    self.env.load(point.env_bytes)
+                else:
+                    self.env.close()
+                    self.env = pickle.loads(point.env_bytes)
+                self.obs = np.asarray(runner["obs"])
             else:
-                env.close()
-                env = pickle.loads(point.env_bytes)
-            obs = np.asarray(runner["obs"])
+                self.obs, start_info = self.env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+            log.info("resumed from %s at step %d (episode %d)", self.resume, agent.steps, self.episode)
+        elif point is not None:  # der graph's agent node: same learner, a new episode in this env
+            self.resume_step = agent.steps
+            if pool is not None:
+                pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
+                self.obs = pool.workers[0].obs
+            else:
+                self.obs, start_info = self.env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
+            log.info("resumed the agent node's learner from %s at step %d (%d transitions in replay); episode "
+                     "counts start at 0", self.resume, agent.steps, len(agent.replay))  # fmt: skip
+        elif pool is not None:
+            pool.start(agent, t_cfg.total_steps)
+            self.obs = pool.workers[0].obs
         else:
-            obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
-        log.info("resumed from %s at step %d (episode %d)", resume, agent.steps, episode)
-    elif point is not None:  # der graph's agent node: same learner, a new episode in this env
-        resume_step = agent.steps
-        if pool is not None:
-            pool.start(agent, t_cfg.total_steps, seeded=False, step=agent.steps)
-            obs = pool.workers[0].obs
+            self.obs, start_info = self.env.reset(seed=t_cfg.seed)
+        # the shield (env.safety, docs/safety.md): the verdict on ``obs``; the learner stores the applied action
+        self.mask: np.ndarray | None = start_info.get("action_mask")
+        self.mask_mode = self.cfg.env.safety.enabled and self.cfg.env.safety.mode == "mask"
+        agent.target_mask = self.target_mask
+
+    def _open_outputs(self) -> None:
+        """Metrics and evaluation files (cut back to the resumed step), the evaluator, the progress bar."""
+        t_cfg, cfg, agent, run_path = self.t_cfg, self.cfg, self.agent, self.run_path
+        self.redo_eval = (bool(t_cfg.eval_interval) and agent.steps % t_cfg.eval_interval == 0
+                          and agent.steps < t_cfg.total_steps)  # fmt: skip
+        if self.resume_step is not None and self.redo_eval:  # the evaluation at this step is redone, once
+            drop_metric_rows(run_path / "metrics.csv", self.resume_step, "eval/")
+        self.writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=self.resume_step)
+        self.eval_csv = run_path / EVALUATIONS_CSV
+        if self.resume_step is not None:
+            truncate_evaluations(self.eval_csv, self.resume_step)
+        elif self.eval_csv.exists():
+            self.eval_csv.unlink()
+        self.evaluator: Evaluator | None = None
+        if t_cfg.eval_interval or t_cfg.final_eval_episodes:
+            self.evaluator = make_evaluator(cfg.env, self.obs_shape, self.obs_dtype, self.n_actions,
+                                            cfg.agent.network, cfg.agent.hidden_sizes, t_cfg.eval_episodes_per_seed,
+                                            t_cfg.eval_seed_base, mode=t_cfg.eval_mode)  # fmt: skip
+        self.last_eval: EvalResult | None = None
+        self.progress = _Progress(t_cfg.total_steps, agent.steps, t_cfg.progress,
+                                  f"{cfg.env.id} {replay_label(cfg.replay)}")  # fmt: skip
+        self.t0 = time.perf_counter()
+        self.log_t, self.log_step = self.t0, agent.steps
+        self.interrupted = False
+
+    # ------------------------------------------------------------------------- the loop
+    def run(self) -> RunSummary:
+        """Train until ``total_steps`` (or a stop signal), then finish the run."""
+        t_cfg, agent, evaluator = self.t_cfg, self.agent, self.evaluator
+        overlap = isinstance(self.env, EnvProcess)
+        self.step_result = _StepResult(self.env) if overlap else None
+        try:
+            # (entered on the cleanup stack: the handlers stay until the interrupted checkpoint and summary are
+            # written)
+            stop = self.cleanup.enter_context(_StopFlag())
+            if self.redo_eval:
+                # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
+                self._evaluate_now(t_cfg.eval_episodes)
+            while agent.steps < t_cfg.total_steps:
+                self._step(overlap)
+                step = agent.steps
+                if step % t_cfg.log_interval == 0:
+                    self._log(step)
+                if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
+                    self._evaluate_now(t_cfg.eval_episodes)
+                if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
+                    path = self._checkpoint()
+                    if self.on_checkpoint is not None:
+                        self.on_checkpoint(path, step)
+                if stop.stop:
+                    self.interrupted = True
+                    break
+            if not self.interrupted and evaluator is not None:
+                # the final evaluation (more episodes), or the last periodic one if there is none
+                self._evaluate_now(t_cfg.final_eval_episodes or (t_cfg.eval_episodes if t_cfg.eval_interval else 0))
+                self._record_evaluations(evaluator.finish())
+        except BaseException:
+            if evaluator is not None:  # no evaluation process outlives a failed run
+                evaluator.close()
+            raise
+        finally:
+            self.progress.close()
+        return self._finish()
+
+    def _step(self, overlap: bool) -> None:
+        """One environment step: act, simulate, store the transition, learn; start a new episode at its end."""
+        agent, pool, env = self.agent, self.pool, self.env
+        obs = self.obs
+        reset: Any = None
+        if pool is not None:  # the next transition in the pool's fixed order; the workers simulate meanwhile
+            obs, action, reward, next_obs, terminated, truncated, info, reset = pool.next_transition(agent)
+            agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+            metrics = agent.learn()
+            pool.learnt_one(agent)
         else:
-            obs, start_info = env.reset(seed=training_env_seed(t_cfg.seed, agent.steps))
-        log.info("resumed the agent node's learner from %s at step %d (%d transitions in replay); episode "
-                 "counts start at 0", resume, agent.steps, len(agent.replay))
-    elif pool is not None:
-        pool.start(agent, t_cfg.total_steps)
-        obs = pool.workers[0].obs
-    else:
-        obs, start_info = env.reset(seed=t_cfg.seed)
-    # the shield (env.safety, docs/safety.md): the verdict on ``obs``; the learner stores the applied action
-    mask: np.ndarray | None = start_info.get("action_mask")
-    mask_mode = cfg.env.safety.enabled and cfg.env.safety.mode == "mask"
-    agent.target_mask = target_mask
+            mask = self.mask
+            action = agent.act(obs, mask=mask) if self.mask_mode else agent.act(obs)
+            applied, _ = replace_unsafe(action, mask)  # what the shield wrapper will apply (itself if no shield)
+            if overlap:  # the gradient step runs while the worker simulates (module env_process)
+                step_result = self.step_result
+                assert step_result is not None
+                env.step_async(action)
+                agent.observe_deferred(obs, applied, step_result.complete)
+                metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
+                agent.replay.resolve_deferred()
+                next_obs, reward, terminated, truncated, info, reset = step_result.take()
+            else:
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                agent.observe(obs, applied, float(reward), next_obs, bool(terminated), bool(truncated))
+                metrics = agent.learn()
+        if metrics:
+            self.acc.add(metrics)
+        if "episode" in info:
+            self._record_episode(info)
+        self.mask = info.get("action_mask")
+        if terminated or truncated:
+            next_obs, reset_info = reset if overlap or pool is not None else env.reset()
+            self.mask = reset_info.get("action_mask")
+            if "episode" in reset_info:
+                self._record_episode(reset_info)
+        self.obs = next_obs
 
-    redo_eval = bool(t_cfg.eval_interval) and agent.steps % t_cfg.eval_interval == 0 and agent.steps < t_cfg.total_steps
-    if resume_step is not None and redo_eval:  # the evaluation at this step is redone below, once
-        drop_metric_rows(run_path / "metrics.csv", resume_step, "eval/")
-    writer = MetricsWriter(run_path, tensorboard=t_cfg.tensorboard, resume_step=resume_step)
-    eval_csv = run_path / EVALUATIONS_CSV
-    if resume_step is not None:
-        truncate_evaluations(eval_csv, resume_step)
-    elif eval_csv.exists():
-        eval_csv.unlink()
-    evaluator: Evaluator | None = None
-    if t_cfg.eval_interval or t_cfg.final_eval_episodes:
-        evaluator = make_evaluator(cfg.env, obs_shape, obs_dtype, n_actions, cfg.agent.network,
-                                   cfg.agent.hidden_sizes, t_cfg.eval_episodes_per_seed, t_cfg.eval_seed_base,
-                                   mode=t_cfg.eval_mode)  # fmt: skip
-    last_eval: EvalResult | None = None
-    progress = _Progress(t_cfg.total_steps, agent.steps, t_cfg.progress, f"{cfg.env.id} {replay_label(cfg.replay)}")
-    t0 = time.perf_counter()
-    log_t, log_step = t0, agent.steps
-    sps = math.nan
-    interrupted = False
+    def _log(self, step: int) -> None:
+        """Every ``log_interval`` steps: the means of the learner's metrics, rates, replay statistics."""
+        now = time.perf_counter()
+        sps = (step - self.log_step) / max(now - self.log_t, 1e-9)
+        self.log_t, self.log_step = now, step
+        values = self.acc.pop_means()
+        values["charts/steps_per_s"] = sps
+        values["charts/epsilon"] = self.agent.epsilon
+        values.update(self.agent.replay.stats())
+        self.writer.scalars(step, self._wall(), values)
+        self.progress.update(step, self.last_return, sps)
+        if self.evaluator is not None:
+            self._record_evaluations(self.evaluator.poll())
 
-    def wall() -> float:
-        return wall_offset + time.perf_counter() - t0
+    # ------------------------------------------------------------------------- records
+    def _wall(self) -> float:
+        return self.wall_offset + time.perf_counter() - self.t0
 
-    def record_episode(info: dict[str, Any]) -> None:
-        nonlocal episode, last_return
+    def _record_episode(self, info: dict[str, Any]) -> None:
         ep = info["episode"]
         ret, length = float(np.asarray(ep["r"])), int(np.asarray(ep["l"]))
-        episode += 1
-        last_return = ret
-        returns.append(ret)
-        writer.episode(episode, agent.steps, ret, length, wall())
+        self.episode += 1
+        self.last_return = ret
+        self.returns.append(ret)
+        steps, writer = self.agent.steps, self.writer
+        writer.episode(self.episode, steps, ret, length, self._wall())
         if "event" in info:  # SUMO lane change: how the episode ended (for Table 3's rates)
             event = info["event"]
-            writer.scalars(agent.steps, wall(), {"charts/episode_success": float(event == "success"),
+            writer.scalars(steps, self._wall(), {"charts/episode_success": float(event == "success"),
                                                  "charts/episode_collision": float(event == "collision")})  # fmt: skip
         if "interventions" in info:  # the shield's vetoes in this episode (env.safety)
-            writer.scalars(agent.steps, wall(), {"charts/episode_interventions": float(info["interventions"])})
-        if on_episode is not None:
-            on_episode(episode, agent.steps, ret)
+            writer.scalars(steps, self._wall(), {"charts/episode_interventions": float(info["interventions"])})
+        if self.on_episode is not None:
+            self.on_episode(self.episode, steps, ret)
 
-    def record_evaluations(results: list[EvalResult]) -> None:
-        nonlocal last_eval
+    def _record_evaluations(self, results: list[EvalResult]) -> None:
         for res in sorted(results, key=lambda r: r.step):
-            write_eval_row(eval_csv, res)
+            write_eval_row(self.eval_csv, res)
             row = res.summary()
-            writer.scalars(res.step, wall(), {f"eval/{k}": v for k, v in row.items() if k not in ("step", "wall_s")})
-            last_eval = res
+            self.writer.scalars(res.step, self._wall(),
+                                {f"eval/{k}": v for k, v in row.items() if k not in ("step", "wall_s")})  # fmt: skip
+            self.last_eval = res
             log.debug("evaluation at step %d: %s", res.step, row)
 
-    def evaluate_now(episodes: int) -> None:
-        if evaluator is not None and episodes > 0:
-            evaluator.submit(agent.steps, net_state(agent.q_net), episodes)
+    def _evaluate_now(self, episodes: int) -> None:
+        if self.evaluator is not None and episodes > 0:
+            self.evaluator.submit(self.agent.steps, net_state(self.agent.q_net), episodes)
 
-    def checkpoint() -> Path:
-        if evaluator is not None:  # every evaluation up to this step is on disk before the checkpoint
-            record_evaluations(evaluator.finish())
+    def _checkpoint(self) -> Path:
+        if self.evaluator is not None:  # every evaluation up to this step is on disk before the checkpoint
+            self._record_evaluations(self.evaluator.finish())
+        pool, env = self.pool, self.env
         extra = {
             "runner": {
-                "episode": episode,
-                "returns": returns,
-                "wall_time": wall(),
-                "accumulator": acc.state_dict(),
-                "obs": np.array(obs, copy=True),
+                "episode": self.episode,
+                "returns": self.returns,
+                "wall_time": self._wall(),
+                "accumulator": self.acc.state_dict(),
+                "obs": np.array(self.obs, copy=True),
                 **({"pool": pool.state_dict()} if pool is not None else {}),
             },
             "env": None if pool is not None else env.pickled() if isinstance(env, EnvProcess) else pickle_env_state(env),
-            "config": cfg.to_dict(),
+            "config": self.cfg.to_dict(),
         }
-        writer.flush()
-        return agent.save(run_path / CHECKPOINT_NAME, extra=extra)
+        self.writer.flush()
+        return self.agent.save(self.run_path / CHECKPOINT_NAME, extra=extra)
 
-    overlap = isinstance(env, EnvProcess)
-    step_result = _StepResult(env) if overlap else None
-    try:
-        # (entered on the cleanup stack: the handlers stay until the interrupted checkpoint and summary are written)
-        stop = cleanup.enter_context(_StopFlag())
-        if redo_eval:
-            # step 0: the untrained policy, where the curves start; on resume: redo the one at this step
-            evaluate_now(t_cfg.eval_episodes)
-        while agent.steps < t_cfg.total_steps:
-            if pool is not None:  # the next transition in the pool's fixed order; the workers simulate meanwhile
-                obs, action, reward, next_obs, terminated, truncated, info, reset = pool.next_transition(agent)
-                agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
-                metrics = agent.learn()
-                pool.learnt_one(agent)
-            else:
-                action = agent.act(obs, mask=mask) if mask_mode else agent.act(obs)
-                applied, _ = replace_unsafe(action, mask)  # what the shield wrapper will apply (itself if no shield)
-                if overlap:  # the gradient step runs while the worker simulates (module env_process)
-                    env.step_async(action)
-                    agent.observe_deferred(obs, applied, step_result.complete)
-                    metrics = agent.learn()  # waits for the step only if its batch holds the step's transition
-                    agent.replay.resolve_deferred()
-                    next_obs, reward, terminated, truncated, info, reset = step_result.take()
-                else:
-                    next_obs, reward, terminated, truncated, info = env.step(action)
-                    agent.observe(obs, applied, float(reward), next_obs, bool(terminated), bool(truncated))
-                    metrics = agent.learn()
-            if metrics:
-                acc.add(metrics)
-            if "episode" in info:
-                record_episode(info)
-            mask = info.get("action_mask")
-            if terminated or truncated:
-                next_obs, reset_info = reset if overlap or pool is not None else env.reset()
-                mask = reset_info.get("action_mask")
-                if "episode" in reset_info:
-                    record_episode(reset_info)
-            obs = next_obs
-            step = agent.steps
-
-            if step % t_cfg.log_interval == 0:
-                now = time.perf_counter()
-                sps = (step - log_step) / max(now - log_t, 1e-9)
-                log_t, log_step = now, step
-                values = acc.pop_means()
-                values["charts/steps_per_s"] = sps
-                values["charts/epsilon"] = agent.epsilon
-                values.update(agent.replay.stats())
-                writer.scalars(step, wall(), values)
-                progress.update(step, last_return, sps)
-                if evaluator is not None:
-                    record_evaluations(evaluator.poll())
-            if t_cfg.eval_interval and step % t_cfg.eval_interval == 0 and step < t_cfg.total_steps:
-                evaluate_now(t_cfg.eval_episodes)
-            if t_cfg.checkpoint_interval and step % t_cfg.checkpoint_interval == 0:
-                path = checkpoint()
-                if on_checkpoint is not None:
-                    on_checkpoint(path, step)
-            if stop.stop:
-                interrupted = True
-                break
-        if not interrupted and evaluator is not None:
-            # the final evaluation (more episodes), or the last periodic one if there is none
-            evaluate_now(t_cfg.final_eval_episodes or (t_cfg.eval_episodes if t_cfg.eval_interval else 0))
-            record_evaluations(evaluator.finish())
-    except BaseException:
-        if evaluator is not None:  # no evaluation process outlives a failed run
+    # ------------------------------------------------------------------------- the end
+    def _finish(self) -> RunSummary:
+        """The last checkpoint and evaluations, the final ``evaluation.json``, and ``summary.json``."""
+        interrupted, evaluator, agent, run_path = self.interrupted, self.evaluator, self.agent, self.run_path
+        ckpt_path: Path | None = None
+        if interrupted or self.t_cfg.save_final_checkpoint:
+            ckpt_path = self._checkpoint()
+        if evaluator is not None:
+            self._record_evaluations(evaluator.finish())
             evaluator.close()
-        raise
-    finally:
-        progress.close()
+        last_eval = self.last_eval
+        if not interrupted and last_eval is not None and last_eval.step == agent.steps:
+            last_eval.save(run_path / FINAL_EVAL_JSON)
+        self.writer.close()
+        self.env.close()  # before the summary, as ever; closing again at exit is a no-op
 
-    ckpt_path: Path | None = None
-    if interrupted or t_cfg.save_final_checkpoint:
-        ckpt_path = checkpoint()
-    if evaluator is not None:
-        record_evaluations(evaluator.finish())
-        evaluator.close()
-    if not interrupted and last_eval is not None and last_eval.step == agent.steps:
-        last_eval.save(run_path / FINAL_EVAL_JSON)
-    writer.close()
-    env.close()  # before the summary, as ever; closing again at exit is a no-op
-
-    elapsed = wall()
-    summary = RunSummary(
-        run_dir=str(run_path),
-        steps=agent.steps,
-        episodes=episode,
-        interrupted=interrupted,
-        wall_time_s=elapsed,
-        steps_per_s=agent.steps / max(elapsed, 1e-9),
-        mean_return=float(np.mean(returns)) if returns else math.nan,
-        max_ma20_return=max_moving_average(returns, 20),
-        checkpoint=str(ckpt_path) if ckpt_path else None,
-        eval_success=last_eval.success_rate if last_eval and not interrupted else math.nan,
-        eval_collision=last_eval.collision_rate if last_eval and not interrupted else math.nan,
-        eval_return=last_eval.mean_return if last_eval and not interrupted else math.nan,
-    )
-    tmp = run_path / f".{SUMMARY_NAME}.tmp"
-    tmp.write_text(json.dumps(summary.__dict__, indent=2, default=float))
-    tmp.replace(run_path / SUMMARY_NAME)
-    if interrupted:
-        log.warning("interrupted at step %d; resume with --resume %s", agent.steps, ckpt_path)
-    return summary
+        elapsed = self._wall()
+        returns = self.returns
+        summary = RunSummary(
+            run_dir=str(run_path),
+            steps=agent.steps,
+            episodes=self.episode,
+            interrupted=interrupted,
+            wall_time_s=elapsed,
+            steps_per_s=agent.steps / max(elapsed, 1e-9),
+            mean_return=float(np.mean(returns)) if returns else math.nan,
+            max_ma20_return=max_moving_average(returns, 20),
+            checkpoint=str(ckpt_path) if ckpt_path else None,
+            eval_success=last_eval.success_rate if last_eval and not interrupted else math.nan,
+            eval_collision=last_eval.collision_rate if last_eval and not interrupted else math.nan,
+            eval_return=last_eval.mean_return if last_eval and not interrupted else math.nan,
+        )
+        tmp = run_path / f".{SUMMARY_NAME}.tmp"
+        tmp.write_text(json.dumps(summary.__dict__, indent=2, default=float))
+        tmp.replace(run_path / SUMMARY_NAME)
+        if interrupted:
+            log.warning("interrupted at step %d; resume with --resume %s", agent.steps, ckpt_path)
+        return summary

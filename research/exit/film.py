@@ -25,7 +25,8 @@ from der_ros.safety.checker import RssChecker
 from der_ros.safety.config import SafetyConfig
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_seeds import EVAL_SEED_BASE
 
 
 def main() -> None:

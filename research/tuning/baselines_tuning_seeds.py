@@ -23,7 +23,7 @@ from pathlib import Path
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.experiments.baselines import GapAcceptanceParams, evaluate_baseline, load_gap_params
 from der_ros.train.config import load_experiment_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
 from sumo_bridge import ENV_NETWORKS
 
 

@@ -26,7 +26,8 @@ from der_ros.agent.dqn import DQNAgent
 from der_ros.experiments.baselines import load_gap_params
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, GreedyQPolicy
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_seeds import EVAL_SEED_BASE
 from sumo_bridge.policies import gap_acceptance_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

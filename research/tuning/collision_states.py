@@ -27,7 +27,8 @@ from der_ros.agent.dqn import DQNAgent
 from der_ros.experiments.baselines import load_gap_params
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import EvalResult, GreedyQPolicy
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_result import EvalResult
 from sumo_bridge.observation import SLOT_NAMES
 from sumo_bridge.policies import gap_acceptance_policy
 

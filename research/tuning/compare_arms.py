@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from der_ros.experiments.stats import paired_permutation_p
-from der_ros.train.evaluation import EvalResult
+from der_ros.train.eval_result import EvalResult
 
 
 def per_situation(runs: list[Path]) -> tuple[list[int | None], np.ndarray, np.ndarray]:

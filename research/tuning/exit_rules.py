@@ -25,7 +25,8 @@ from typing import Any
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.experiments.baselines import _network, baseline_job, run_baselines
 from der_ros.train.config import load_experiment_config
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE, EvalResult
+from der_ros.train.eval_result import EvalResult
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE
 from sumo_bridge.mobil import MobilParams
 
 #: the grids: SUMO LC2013 parameters of the ego (defaults 1 / 1 / 1) and MOBIL's exit bias and b_safe

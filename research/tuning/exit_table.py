@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from der_ros.experiments.baselines import EXIT_BASELINES
-from der_ros.train.evaluation import EvalResult
+from der_ros.train.eval_result import EvalResult
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ import gymnasium as gym
 
 import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.experiments.baselines import MOBIL_EGO_TYPE, rule_params
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE
 from sumo_bridge.idm import idm_acceleration
 from sumo_bridge.mobil import MobilParams, mobil_policy, situation_from_points
 

@@ -25,7 +25,10 @@ import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.agent.dqn import DQNAgent
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import EVAL_SEED_BASE, EvalResult, GreedyQPolicy, evaluation_seeds, run_episodes
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_policies import GreedyQPolicy
+from der_ros.train.eval_result import EvalResult
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, evaluation_seeds
 from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES
 
 COL = {name: i for i, name in enumerate(POINT_FIELDS)}

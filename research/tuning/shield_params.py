@@ -25,7 +25,8 @@ from der_ros.configuration import from_dict, to_dict
 from der_ros.experiments.baselines import baseline_policy, load_gap_params
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE, evaluation_seeds, run_episodes
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE, evaluation_seeds
 
 GRID = {  # response_time (s), accel_max, brake_min, brake_max (m/s^2)
     "response_time": (0.1, 0.25, 0.5, 1.0),

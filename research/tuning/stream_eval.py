@@ -20,7 +20,8 @@ import sumo_bridge  # noqa: F401 - registers the lane-change environments
 from der_ros.agent.dqn import DQNAgent
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import GreedyQPolicy, run_episodes
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_policies import GreedyQPolicy
 
 
 def main() -> None:

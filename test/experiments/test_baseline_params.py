@@ -32,7 +32,7 @@ def test_bad_tuned_flag_and_unknown_keys_are_named(tmp_path: Path) -> None:
 
 
 def test_table3_labels_an_untuned_gap_rule(tmp_path: Path) -> None:
-    from der_ros.train.evaluation import EpisodeResult, EvalResult
+    from der_ros.train.eval_result import EpisodeResult, EvalResult
 
     res = EvalResult(step=0, episodes=[EpisodeResult(seed=1, stream=0, ret=200.0, length=50, outcome="success",
                                                      caused=False)], seeds=[1], wall_s=0.1)  # fmt: skip

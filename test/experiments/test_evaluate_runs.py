@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from der_ros.cli import main as der_main
-from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE, EvalResult
+from der_ros.train.eval_result import EvalResult
+from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
 
 pytestmark = pytest.mark.slow  # trains and runs SUMO: minutes on a loaded 2-core machine
 

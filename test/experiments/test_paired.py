@@ -11,7 +11,7 @@ from der_ros.experiments.paired import paired_counts
 from der_ros.experiments.stats import paired_permutation_p
 from der_ros.experiments.suite import PAPER_METHODS, RunResult, RunSpec
 from der_ros.experiments.table3 import write_table3
-from der_ros.train.evaluation import FINAL_EVAL_JSON, EpisodeResult, EvalResult
+from der_ros.train.eval_result import FINAL_EVAL_JSON, EpisodeResult, EvalResult
 
 S = 1_000_000_000
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from der_ros.experiments.baselines import GAP_GRID, GapAcceptanceParams, pick_gap
-from der_ros.train.evaluation import EpisodeResult, EvalResult
+from der_ros.train.eval_result import EpisodeResult, EvalResult
 
 
 def _result(success: int, caused: int, n: int = 100) -> EvalResult:

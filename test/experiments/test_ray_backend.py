@@ -34,7 +34,7 @@ from der_ros.experiments.backends.ray_cluster import loopback_ray
 from der_ros.experiments.run_compare import run_differences
 from der_ros.experiments.suite import methods_by_name, plan_runs
 from der_ros.experiments.sweep import grid_methods, parse_grid
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE
 
 pytestmark = pytest.mark.slow
 

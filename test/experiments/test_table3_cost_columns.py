@@ -16,7 +16,7 @@ from der_ros.experiments import table3
 from der_ros.experiments.aggregate import Interval
 from der_ros.experiments.suite import PAPER_METHODS, RunResult, RunSpec, load_result, methods_by_name, shielded_method
 from der_ros.experiments.table3 import write_table3
-from der_ros.train.evaluation import FINAL_EVAL_JSON, EpisodeResult, EvalResult
+from der_ros.train.eval_result import FINAL_EVAL_JSON, EpisodeResult, EvalResult
 
 REPO = Path(__file__).resolve().parents[2]
 ARCHIVE = REPO / "research" / "run_files" / "table3"

@@ -242,7 +242,7 @@ def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path
     import yaml
 
     from der_ros.configuration import ConfigError
-    from der_ros.experiments.suite import _check_same_settings
+    from der_ros.experiments.run_compare import check_same_settings
     from der_ros.train.config import load_experiment_config
 
     ring = REPO / "config" / "ring.yaml"
@@ -256,24 +256,24 @@ def test_a_scenario_field_added_after_a_run_counts_as_its_default(tmp_path: Path
     old_rule = "env.kwargs.scenario.commit_on_success=false"
     old_look = "env.kwargs.scenario.observation.near_gap_horizon=0.0"  # the shipped ring uses 1.0
     for extra in ([], ["env.kwargs.scenario.observation.required_decel_scale=0"]):
-        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, old_look, *extra]))
+        check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, old_look, *extra]))
     with pytest.raises(ConfigError, match=r"scenario\.commit_on_success = False there, True now"):
-        _check_same_settings(tmp_path, load_experiment_config(ring))
+        check_same_settings(tmp_path, load_experiment_config(ring))
     look_ahead = "env.kwargs.scenario.observation.near_gap_horizon=0.5"
     with pytest.raises(ConfigError, match=r"near_gap_horizon = 0\.0 there, 0\.5 now"):
-        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, look_ahead]))
+        check_same_settings(tmp_path, load_experiment_config(ring, [old_rule, look_ahead]))
     # a field the current code does not know is compared as written, so it shows up as a change
     scenario["no_such_field"] = 1
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"no_such_field = 1 there, None now"):
-        _check_same_settings(tmp_path, load_experiment_config(ring, [old_rule]))
+        check_same_settings(tmp_path, load_experiment_config(ring, [old_rule]))
 
 
 @pytest.mark.slow
 def test_sweep_evaluates_on_the_tuning_seeds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A sweep is tuning: its greedy evaluations use the tuning evaluation seeds, never the report's,
     unless --set train.eval_seed_base says otherwise; sweep.md and sweep.json name the set."""
-    from der_ros.train.evaluation import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
+    from der_ros.train.eval_seeds import EVAL_SEED_BASE, TUNING_EVAL_SEED_BASE
 
     base = ["sweep", str(REPO / "config" / "cartpole.yaml"), "--grid", "agent.gamma=0.9,0.98", "--seeds", "1",
             "--jobs", "2", "--set", "train.total_steps=150", "--set", "agent.learning_starts=50",

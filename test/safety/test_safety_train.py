@@ -15,7 +15,8 @@ from der_ros.configuration import from_dict
 from der_ros.safety.observation_mask import ObservationMask
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
-from der_ros.train.evaluation import TUNING_EVAL_SEED_BASE, evaluation_seeds, run_episodes
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_seeds import TUNING_EVAL_SEED_BASE, evaluation_seeds
 from der_ros.train.runner import train
 from sumo_bridge.observation import ObservationConfig
 from sumo_bridge.policies import immediate_policy

@@ -22,7 +22,7 @@ from der_ros.agent.dqn import DQNAgent, read_checkpoint
 from der_ros.configuration import ConfigError
 from der_ros.train.config import load_experiment_config
 from der_ros.train.env_pool import worker_seed
-from der_ros.train.evaluation import TRAINING_SEED_LIMIT
+from der_ros.train.eval_seeds import TRAINING_SEED_LIMIT
 from der_ros.train.runner import train
 
 

@@ -12,15 +12,15 @@ import pytest
 from der_ros.configuration import ConfigError
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env
-from der_ros.train.evaluation import (
+from der_ros.train.eval_episodes import run_episodes
+from der_ros.train.eval_result import read_evaluations
+from der_ros.train.eval_seeds import (
     EVAL_SEED_BASE,
     TRAINING_SEED_LIMIT,
     TUNING_EVAL_SEED_BASE,
     check_disjoint,
     check_training_seed,
     evaluation_seeds,
-    read_evaluations,
-    run_episodes,
     training_env_seed,
 )
 from der_ros.train.runner import train
@@ -163,7 +163,8 @@ def test_the_process_evaluator_gives_the_inline_results_over_pipes() -> None:
     from der_ros.agent.dqn import DQNAgent
     from der_ros.replay.config import ReplayConfig
     from der_ros.train.config import EnvConfig
-    from der_ros.train.evaluation import make_evaluator, net_state
+    from der_ros.train.eval_policies import net_state
+    from der_ros.train.evaluation import make_evaluator
 
     agent = DQNAgent((4,), np.float32, 2, DQNConfig(hidden_sizes=(512, 512), batch_size=8), ReplayConfig(capacity=64),
                      seed=5)
@@ -209,7 +210,7 @@ def test_episodes_carry_time_to_success_and_imposed_braking(tmp_path: Path) -> N
     """Success at what cost to others (issue 44): the env's last info per episode; a time to success only for
     an episode that ended in success (a collision after the goal was reached has none); means in the summary
     and in evaluation.json; results written before the metrics load as unmeasured (None / NaN), never 0."""
-    from der_ros.train.evaluation import EvalResult
+    from der_ros.train.eval_result import EvalResult
 
     script = [("success", 6.5, 4.0), ("collision", 3.0, 9.0), ("time_limit", None, 0.0), ("success", 2.5, 1.0)]
     env = _ScriptedEnv(script)

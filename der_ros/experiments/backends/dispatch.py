@@ -24,7 +24,8 @@ from der_ros.experiments.backends.base import Backend, BackendError, EventSink, 
 from der_ros.experiments.backends.local import LocalBackend
 from der_ros.experiments.backends.ray_cluster import RayBackend
 from der_ros.experiments.backends.suite_progress import SuiteProgress
-from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError, _finished, _resolve
+from der_ros.experiments.run_compare import finished_run
+from der_ros.experiments.suite import RunSpec, SuiteRunError, UnfinishedRunsError
 
 __all__ = [
     "BACKENDS",
@@ -63,8 +64,8 @@ def run_specs(
     """
     todo = []
     for spec in specs:
-        cfg = _resolve(spec)  # raises ConfigError before any run starts
-        if _finished(Path(spec.run_dir), cfg):  # ConfigError if it holds a run of other settings
+        cfg = spec.resolved_config()  # raises ConfigError before any run starts
+        if finished_run(Path(spec.run_dir), cfg):  # ConfigError if it holds a run of other settings
             log.info("skip finished run %s", spec.run_dir)
         else:
             todo.append(spec)

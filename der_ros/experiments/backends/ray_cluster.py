@@ -51,7 +51,7 @@ from der_ros.experiments.backends.artifacts import (
     write_files,
 )
 from der_ros.experiments.backends.base import Backend, BackendError, EventSink, RunEvent, RunFailedError
-from der_ros.experiments.suite import RunSpec, _resolve, default_jobs, run_one
+from der_ros.experiments.suite import RunSpec, default_jobs, run_one
 from der_ros.train.config import experiment_from_dict
 from der_ros.train.env_process import CPUS_PER_RUN_ENV
 from der_ros.train.runner import CHECKPOINT_NAME, SUMMARY_NAME
@@ -272,7 +272,7 @@ class _Driver:
         self.backend = backend
         self.specs = {s.run_dir: s for s in specs}
         self.emit = emit
-        self.configs = {s.run_dir: _resolve(s).to_dict() for s in specs}
+        self.configs = {s.run_dir: s.resolved_config().to_dict() for s in specs}
         self.attempt = {s.run_dir: 0 for s in specs}
         self.checkpoint_step: dict[str, int | None] = {s.run_dir: None for s in specs}
         here = ray.get_runtime_context().get_node_id()
