@@ -18,7 +18,8 @@ one at the budget, on more episodes; docs/evaluation.md, "Sample efficiency"):
 
 Per method the report gives the IQM over seeds with its stratified-bootstrap 95% CI (rliable), and for
 every DER lambda the probability of improvement over DQN and over PER, on the final success and on the
-AUC, with the verdict that follows from its CI (:func:`der_ros.experiments.aggregate.verdict`).
+AUC, with the verdict that follows from its CI (:func:`der_ros.experiments.aggregate.verdict`), and the
+probability that it reaches 90% in fewer steps (a run that never does ranked behind every run that does).
 """
 
 from __future__ import annotations
@@ -154,23 +155,22 @@ def efficiency_section(
     ``runs``), extended in place with new keys only: per seed ``eval_success_auc``, ``eval_steps_to_90``
     (censored at the budget), ``eval_reached_90``; and ``sample_efficiency`` (the IQMs with their CIs, the
     threshold and whose it is, the count not reached, and for DER methods the probabilities of improvement
-    and verdicts against DQN and PER).
+    and verdicts against DQN and PER, and the probability of reaching 90% in fewer steps).
     """
     learned = [m for m in runs if m in payload and "seeds" in payload[m] and runs[m]]
     if not learned:
         return []
     thresholds = reach_thresholds({m: payload[m]["eval_success"] for m in learned})
-    auc: dict[str, list[float]] = {}
     cis: dict[str, tuple[Interval, Interval]] = {}
     for m in learned:
         curves = [evaluation_curve(Path(r.spec.run_dir)) for r in runs[m]]
-        auc[m] = [success_auc(c["step"], c["success"]) for c in curves]
+        auc = [success_auc(c["step"], c["success"]) for c in curves]
         reach = [steps_to_reach(c["step"], c["success"], thresholds[m][0]) for c in curves]
-        auc_ci = iqm_interval(auc[m])
+        auc_ci = iqm_interval(auc)
         steps_ci = iqm_interval([r.step for r in reach])
         cis[m] = (auc_ci, steps_ci)
         defined = [r for r in reach if not math.isnan(r.step)]
-        payload[m]["eval_success_auc"] = [_json(a) for a in auc[m]]
+        payload[m]["eval_success_auc"] = [_json(a) for a in auc]
         payload[m]["eval_steps_to_90"] = [_json(r.step) for r in reach]
         payload[m]["eval_reached_90"] = [r.reached for r in reach]
         payload[m]["sample_efficiency"] = {
@@ -196,7 +196,7 @@ def efficiency_section(
                      f"| {se['not_reached_90']}/{se['runs_90']} |")  # fmt: skip
     pairs = der_comparisons(learned)
     if pairs:
-        lines += _verdict_lines(pairs, payload, auc, labels)
+        lines += _verdict_lines(pairs, payload, labels)
     return lines
 
 
@@ -204,32 +204,43 @@ def _nan(values: Sequence[float | None]) -> list[float]:
     return [math.nan if v is None else float(v) for v in values]
 
 
+def _ranked_steps(entry: Mapping[str, Any]) -> np.ndarray:
+    """Per seed, the steps to 90% for ranking: +inf where not reached (behind a run that reached it at the budget,
+    which the censored value would tie), NaN where undefined."""
+    steps = np.asarray(_nan(entry["eval_steps_to_90"]), dtype=np.float64)
+    return np.where(np.asarray(entry["eval_reached_90"], dtype=bool) | np.isnan(steps), steps, np.inf)
+
+
 #: measure name in the text -> per-seed key of the payload
 _MEASURES = {"final success": "eval_success", "success AUC": "eval_success_auc"}
 
 
-def _verdict_lines(pairs: list[tuple[str, str]], payload: dict[str, dict[str, Any]], auc: Mapping[str, list[float]],
+def _verdict_lines(pairs: list[tuple[str, str]], payload: dict[str, dict[str, Any]],
                    labels: Mapping[str, str]) -> list[str]:  # fmt: skip
-    """The probability-of-improvement table on final success and AUC, and the verdict on DER."""
-    lines = ["", "Probability of improvement P(X > Y) over training seeds [95% CI] (rliable), shielded methods "
-             "against shielded ones:", "", "| X vs Y | P(X > Y) on final success | P(X > Y) on success AUC |",
-             "|---|---|---|"]  # fmt: skip
+    """The probability-of-improvement table (final success, AUC, and fewer steps to 90%), and the verdict on DER
+    (final success and AUC)."""
+    lines = ["", "Probability of improvement over training seeds [95% CI] (rliable), shielded methods against shielded "
+             "ones; on the steps to 90%, P(X reaches it in fewer steps than Y) (a run not reaching it ranks behind "
+             "every run that does; ties count one half):", "", "| X vs Y | P(X > Y) on final success | P(X > Y) on success AUC "
+             "| P(X < Y) on steps to 90% |", "|---|---|---|---|"]  # fmt: skip
     counts = {what: {"better": 0, "worse": 0, "indistinguishable": 0, None: 0} for what in _MEASURES}
     bullets = []
     for x, y in pairs:
         n = min(len(payload[x]["seeds"]), len(payload[y]["seeds"]))
         parts, cells = [], []
+        entry = payload[x]["sample_efficiency"].setdefault("vs", {}).setdefault(y, {})
         for what, key in _MEASURES.items():
-            values = auc if key == "eval_success_auc" else {m: payload[m][key] for m in (x, y)}
-            poi = probability_of_improvement(_nan(values[x]), _nan(values[y]))
+            poi = probability_of_improvement(_nan(payload[x][key]), _nan(payload[y][key]))
             word = verdict(poi, n)
             counts[what][word] += 1
             cells.append(poi.format(2))
-            entry = payload[x]["sample_efficiency"].setdefault("vs", {}).setdefault(y, {})
             entry[f"poi_{key}"] = _interval_json(poi)
             entry[f"verdict_{key}"] = word
             parts.append(f"{word or 'no verdict'} on {what} (P = {poi.format(2)})")
-        lines.append(f"| {labels.get(x, x)} vs {labels.get(y, y)} | {cells[0]} | {cells[1]} |")
+        # fewer steps is better: P(X < Y) = P(-X > -Y); a run that never reached τ ranks behind every run that did
+        faster = probability_of_improvement(-_ranked_steps(payload[x]), -_ranked_steps(payload[y]))
+        entry["poi_fewer_eval_steps_to_90"] = _interval_json(faster)
+        lines.append(f"| {labels.get(x, x)} vs {labels.get(y, y)} | {cells[0]} | {cells[1]} | {faster.format(2)} |")
         bullets.append(f"{labels.get(x, x)} against {labels.get(y, y)}: {'; '.join(parts)}.")
     summary = []
     for what, c in counts.items():

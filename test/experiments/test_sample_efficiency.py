@@ -138,6 +138,15 @@ def test_the_verdict_sentence_says_better_worse_or_indistinguishable_on_final_su
     vs = payload["der0.1"]["sample_efficiency"]["vs"]["dqn"]
     assert (vs["verdict_eval_success"], vs["verdict_eval_success_auc"]) == ("better", "worse")
     assert vs["poi_eval_success"] == [1.0, 1.0, 1.0]
+    # steps to 90% (τ = 0.9 · 0.92 = 0.828): λ 0.1 reaches it at its final evaluation, step 2000, DQN never does
+    # (censored at the same 2000, but ranked behind): P(λ 0.1 in fewer steps) = 1; λ 0.5 and DQN never do: a tie
+    assert payload["der0.1"]["eval_steps_to_90"] == payload["dqn"]["eval_steps_to_90"] == [2000.0] * 5
+    assert payload["der0.1"]["eval_reached_90"] == [True] * 5 and payload["dqn"]["eval_reached_90"] == [False] * 5
+    assert vs["poi_fewer_eval_steps_to_90"] == [1.0, 1.0, 1.0]
+    assert payload["der0.5"]["sample_efficiency"]["vs"]["dqn"]["poi_fewer_eval_steps_to_90"] == [0.5, 0.5, 0.5]
+    row = next(line for line in text.splitlines() if line.startswith("| λ = 0.1 (n=5) | 0.230 ["))  # AUC 0.92 / 4
+    assert row.endswith("] | 2000 [2000, 2000] | 0.828 (λ = 0.1) | 0/5 |"), row
+    assert "| DQN (n=5) | 0.410 [" in text and "] | 2000 [2000, 2000] | 0.828 (λ = 0.1) | 5/5 |" in text
 
 
 def _exit_runs(out: Path) -> None:
