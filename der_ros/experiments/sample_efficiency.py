@@ -86,7 +86,9 @@ class Reach:
     reached: bool
 
 
-def steps_to_reach(steps: Sequence[float] | np.ndarray, success: Sequence[float] | np.ndarray, threshold: float) -> Reach:
+def steps_to_reach(
+    steps: Sequence[float] | np.ndarray, success: Sequence[float] | np.ndarray, threshold: float
+) -> Reach:
     """The first evaluation step whose success is >= ``threshold`` (up to rounding), or the last step (the
     budget) with ``reached=False`` if none is. Undefined (NaN) for a threshold <= 0 or NaN, or no evaluations."""
     s = np.asarray(steps, dtype=np.float64)
@@ -181,19 +183,19 @@ def efficiency_section(
             "not_reached_90": sum(not r.reached for r in defined),
             "runs_90": len(defined),
         }
-    lines = ["", "Sample efficiency, from each run's greedy evaluation curve (`evaluations.csv`; docs/evaluation.md): "
-             "*success AUC* = the area under the success curve over training steps divided by the step span (1 = "
-             "every episode succeeds from step 0 on); *steps to 90%* = the first evaluation step at which a run's "
-             f"success reaches τ = {REACH_FRACTION:g} × the best method's final success IQM (shielded methods against "
-             "the best shielded one), a run that never does counted at its budget and listed as not reached. "
-             "IQM over seeds [95% stratified-bootstrap CI] (rliable).", "",
+    lines = ["", "Sample efficiency, from each run's greedy evaluation curve (`evaluations.csv`; docs/evaluation.md):",
+             "*success AUC* = the area under the success curve over training steps divided by the step span (1 = every",
+             "episode succeeds from step 0 on); *steps to 90%* = the first evaluation step at which a run's success",
+             f"reaches τ = {REACH_FRACTION:g} × the best method's final success IQM (shielded methods against the best",
+             "shielded one), a run that never does counted at its budget and listed as not reached. IQM over seeds",
+             "[95% stratified-bootstrap CI] (rliable).", "",
              "| Method | Success AUC | Steps to 90% | τ (best method) | Not reached |", "|---|---|---|---|---|"]  # fmt: skip
     for m in learned:
         se = payload[m]["sample_efficiency"]
         tau, best = thresholds[m]
         tau_cell = "n/a" if math.isnan(tau) else f"{tau:.3f} ({labels.get(best, best)})"
-        lines.append(f"| {labels.get(m, m)} (n={len(runs[m])}) | {cis[m][0].format(3)} | {cis[m][1].format(0)} | {tau_cell} "
-                     f"| {se['not_reached_90']}/{se['runs_90']} |")  # fmt: skip
+        lines.append(f"| {labels.get(m, m)} (n={len(runs[m])}) | {cis[m][0].format(3)} | {cis[m][1].format(0)} "
+                     f"| {tau_cell} | {se['not_reached_90']}/{se['runs_90']} |")  # fmt: skip
     pairs = der_comparisons(learned)
     if pairs:
         lines += _verdict_lines(pairs, payload, labels)
@@ -219,10 +221,11 @@ def _verdict_lines(pairs: list[tuple[str, str]], payload: dict[str, dict[str, An
                    labels: Mapping[str, str]) -> list[str]:  # fmt: skip
     """The probability-of-improvement table (final success, AUC, and fewer steps to 90%), and the verdict on DER
     (final success and AUC)."""
-    lines = ["", "Probability of improvement over training seeds [95% CI] (rliable), shielded methods against shielded "
-             "ones; on the steps to 90%, P(X reaches it in fewer steps than Y) (a run not reaching it ranks behind "
-             "every run that does; ties count one half):", "", "| X vs Y | P(X > Y) on final success | P(X > Y) on success AUC "
-             "| P(X < Y) on steps to 90% |", "|---|---|---|---|"]  # fmt: skip
+    lines = ["", "Probability of improvement over training seeds [95% CI] (rliable), shielded methods against shielded",
+             "ones; on the steps to 90%, P(X reaches it in fewer steps than Y) (a run not reaching it ranks behind",
+             "every run that does; ties count one half):", "",
+             "| X vs Y | P(X > Y) on final success | P(X > Y) on success AUC | P(X < Y) on steps to 90% |",
+             "|---|---|---|---|"]  # fmt: skip
     counts = {what: {"better": 0, "worse": 0, "indistinguishable": 0, None: 0} for what in _MEASURES}
     bullets = []
     for x, y in pairs:
@@ -249,7 +252,7 @@ def _verdict_lines(pairs: list[tuple[str, str]], payload: dict[str, dict[str, An
         if c[None]:
             text += f", no verdict in {c[None]} (fewer than {MIN_SEEDS_FOR_VERDICT} seeds on a side)"
         summary.append(text)
-    lines += ["", f"**Verdict on DER** (each λ against DQN and against PER; better if the CI of P(X > Y) lies above "
-              f"0.5, worse if below, indistinguishable if it contains 0.5): {'; '.join(summary)}.", "",
+    lines += ["", "**Verdict on DER** (each λ against DQN and against PER; better if the CI of P(X > Y) lies above 0.5,",
+              f"worse if below, indistinguishable if it contains 0.5): {'; '.join(summary)}.", "",
               *[f"- {b}" for b in bullets]]  # fmt: skip
     return lines
