@@ -14,7 +14,8 @@ one at the budget, on more episodes; docs/evaluation.md, "Sample efficiency"):
   never reaches it is **censored at its budget** (its last evaluation step) and flagged "not reached";
   the IQM over seeds then counts it at the budget, a lower bound, so the count of runs not reached is
   always reported beside it. Undefined (NaN) when the best final success is 0 (every run would "reach"
-  it at step 0).
+  it at step 0). It is the first crossing, as the issue words it: a run that falls back after reaching it
+  keeps its crossing step (the AUC and the final success show the fall).
 
 Per method the report gives the IQM over seeds with its stratified-bootstrap 95% CI (rliable), and for
 every DER lambda the probability of improvement over DQN and over PER, on the final success and on the
@@ -253,6 +254,6 @@ def _verdict_lines(pairs: list[tuple[str, str]], payload: dict[str, dict[str, An
             text += f", no verdict in {c[None]} (fewer than {MIN_SEEDS_FOR_VERDICT} seeds on a side)"
         summary.append(text)
     lines += ["", "**Verdict on DER** (each λ against DQN and against PER; better if the CI of P(X > Y) lies above 0.5,",
-              f"worse if below, indistinguishable if it contains 0.5): {'; '.join(summary)}.", "",
+              "worse if below, indistinguishable if it contains 0.5):", ";\n".join(summary) + ".", "",
               *[f"- {b}" for b in bullets]]  # fmt: skip
     return lines

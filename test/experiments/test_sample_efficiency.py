@@ -133,8 +133,9 @@ def test_the_verdict_sentence_says_better_worse_or_indistinguishable_on_final_su
     assert "indistinguishable on final success" in bullets["λ = 0.9 against DQN"]
     assert "indistinguishable on success AUC" in bullets["λ = 0.9 against DQN"]
     assert "no verdict on final success" in bullets["λ = 0.9 + shield against DQN + shield"]
-    assert ("on final success, better in 2 of 7 comparisons, worse in 2, indistinguishable in 2, no verdict in 1 "
-            "(fewer than 5 seeds on a side); on success AUC, better in 0 of 7 comparisons, worse in 4") in text  # fmt: skip
+    assert ("\non final success, better in 2 of 7 comparisons, worse in 2, indistinguishable in 2, no verdict in 1 "
+            "(fewer than 5 seeds on a side);\non success AUC, better in 0 of 7 comparisons, worse in 4, "
+            "indistinguishable in 2, no verdict in 1 (fewer than 5 seeds on a side).\n") in text  # fmt: skip
     vs = payload["der0.1"]["sample_efficiency"]["vs"]["dqn"]
     assert (vs["verdict_eval_success"], vs["verdict_eval_success_auc"]) == ("better", "worse")
     assert vs["poi_eval_success"] == [1.0, 1.0, 1.0]
