@@ -31,6 +31,7 @@ __all__ = [
     "final_evaluation",
     "evaluation_curve",
     "significance_sentence",
+    "verdict",
     "iqm",
     "iqm_band",
     "per_seed_lists",
@@ -159,6 +160,19 @@ def probability_of_improvement(
 MIN_SEEDS_FOR_VERDICT = 5
 
 
+def verdict(poi: Interval, n: int = MIN_SEEDS_FOR_VERDICT) -> str | None:
+    """What P(X > Y) and its 95% CI say: "better" if the whole CI lies above 0.5, "worse" if below,
+    "indistinguishable" if it contains 0.5 (whatever the point estimate); None without data or with fewer
+    than :data:`MIN_SEEDS_FOR_VERDICT` seeds on either side (``n`` = the smaller number of seeds)."""
+    if math.isnan(poi.value) or n < MIN_SEEDS_FOR_VERDICT:
+        return None
+    if poi.low > 0.5:
+        return "better"
+    if poi.high < 0.5:
+        return "worse"
+    return "indistinguishable"
+
+
 def significance_sentence(name_x: str, name_y: str, poi: Interval, metric: str, n: int = MIN_SEEDS_FOR_VERDICT) -> str:
     """One sentence that follows from P(X > Y) and its CI (better / worse / not distinguishable);
     ``n`` = the smaller number of seeds of the two."""
@@ -167,13 +181,14 @@ def significance_sentence(name_x: str, name_y: str, poi: Interval, metric: str, 
     if n < MIN_SEEDS_FOR_VERDICT:
         return (f"{name_x} vs {name_y} on {metric}: P({name_x} > {name_y}) = {poi.format(2)}, from {n} seeds, "
                 f"too few for a verdict (at least {MIN_SEEDS_FOR_VERDICT}).")
-    if poi.low > 0.5:
-        verdict = f"{name_x} is better than {name_y}"
-    elif poi.high < 0.5:
-        verdict = f"{name_x} is worse than {name_y}"
+    word = verdict(poi, n)
+    if word == "better":
+        text = f"{name_x} is better than {name_y}"
+    elif word == "worse":
+        text = f"{name_x} is worse than {name_y}"
     else:
-        verdict = f"{name_x} and {name_y} cannot be told apart"
-    return f"{verdict} on {metric} (P({name_x} > {name_y}) = {poi.format(2)}; the CI {'excludes' if not poi.low <= 0.5 <= poi.high else 'includes'} 0.5)."
+        text = f"{name_x} and {name_y} cannot be told apart"
+    return f"{text} on {metric} (P({name_x} > {name_y}) = {poi.format(2)}; the CI {'excludes' if not poi.low <= 0.5 <= poi.high else 'includes'} 0.5)."
 
 
 def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:

@@ -22,9 +22,14 @@ Protocol (paper section 5.1, and the evaluation protocol of docs/evaluation.md):
   collisions.
 * The paper's own "total reward" stays, labelled as what it is: the mean return over all
   *training* episodes of a run (exploration included).
+* **Sample efficiency** from each run's greedy evaluation curve: the IQM of the area under the success
+  curve and of the steps to reach 90% of the best method's final success, with the probability of
+  improvement of each DER lambda over DQN and PER on final success and on that area, and the verdict on
+  DER that follows from the CIs (:mod:`der_ros.experiments.sample_efficiency`).
 
 Writes ``<results>/table3.md``, ``table3.json`` (every per-seed number) and
-``table3_<network>_curves.png``; run directories go to ``--out/<network>/<method>/seed<k>``
+``table3_<network>_curves.png`` (``--name`` replaces the stem ``table3``, e.g. ``table_exit`` for the exit
+suite); run directories go to ``--out/<network>/<method>/seed<k>``
 (finished runs are reused, interrupted ones resume), baselines to ``--out/<network>/baselines``.
 """
 
@@ -34,6 +39,7 @@ import argparse
 import json
 import logging
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -59,6 +65,7 @@ from der_ros.experiments.baselines import (
     shielded_env_config,
 )
 from der_ros.experiments.paired import PairedCounts, paired_counts
+from der_ros.experiments.sample_efficiency import efficiency_section
 from der_ros.experiments.stats import average_score, paired_permutation_p
 from der_ros.experiments.suite import (
     SHIELD_SUFFIX,
@@ -113,6 +120,8 @@ SCORE_KEYS = ("eval_success", "eval_collision", "eval_time_limit", "eval_return"
 #: over episodes of the harshest deceleration a new follower showed after the ego's lane changes (m/s²). null in
 #: the JSON (and "–" in the table) for evaluations made before these were measured: never 0.
 COST_KEYS = ("eval_time_to_exit", "eval_imposed_brake")
+#: the results' file stem without --name
+DEFAULT_NAME = "table3"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -143,7 +152,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "others keep the paper's rows only")  # fmt: skip
     parser.add_argument("--shield-only", dest="shield_only", action="store_true",
                         help="run only the shielded rows (the unshielded ones are reused when present)")  # fmt: skip
+    parser.add_argument("--name", default=DEFAULT_NAME,
+                        help=f"file stem of the results: <results>/<name>.md, <name>.json, <name>_<network>_curves.png "
+                        f"(default {DEFAULT_NAME}; e.g. table_exit for the exit suite)")  # fmt: skip
     add_backend_arguments(parser)
+
+
+def check_name(name: str) -> str:
+    """``--name`` as given if it is a plain file stem (letters, digits, '_', '-', not starting with '-'); else
+    SystemExit with one line naming the value."""
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_-]*", name):
+        raise SystemExit(f"der table3: --name {name!r}, expected a plain file stem (letters, digits, '_' or '-'; "
+                         "no folder, no extension), e.g. table_exit")  # fmt: skip
+    return name
 
 
 def score_run(run: RunResult) -> dict[str, float]:
@@ -289,8 +310,9 @@ def write_table3(
             lines.append(f"| {labels[name]} | {_cell(mean_interval(col['eval_success']))} "
                          f"| {_cell(mean_interval(col['eval_collision']))} | {_cell(mean_interval(col['eval_return']), 1)} |")  # fmt: skip
         lines += _significance(net, payload[net], labels)
+        lines += efficiency_section(results[net], payload[net], labels)
         lines += _paired(results[net], baselines.get(net, {}), labels, b_names)
-        lines += ["", f"![{net}: evaluation and training curves](table3_{net}_curves.png)", ""]
+        lines += ["", f"![{net}: evaluation and training curves]({path.stem}_{net}_curves.png)", ""]
     info = environment_info() | _versions()
     counts = {net: max((len(runs) for runs in by_m.values()), default=0) for net, by_m in results.items()}
     seeds_per = "method and network"
@@ -430,6 +452,7 @@ def _situation_sentence(b_label: str, by_m: dict[str, PairedCounts], labels: dic
 
 
 def run(args: argparse.Namespace) -> int:
+    stem = check_name(args.name)  # before anything runs
     paper_methods = methods_by_name(args.methods)
     shielded: list[Method] = []
     if args.shield != "none":  # the shielded twins (Table 3 gains rows; the paper's rows stay)
@@ -506,11 +529,13 @@ def run(args: argparse.Namespace) -> int:
         extra += ["--shield", args.shield] + (["--shield-mode", args.shield_mode] if args.shield_mode else [])
         extra += ["--shield-only"] if args.shield_only else []
         extra += ["--shield-networks", *args.shield_networks] if args.shield_networks is not None else []
-    md, js = write_table3(results, labels, baselines, out / "table3.md", suite_command("table3", args, extra), seeds,
+    if stem != DEFAULT_NAME:
+        extra += ["--name", stem]
+    md, js = write_table3(results, labels, baselines, out / f"{stem}.md", suite_command("table3", args, extra), seeds,
                           steps, total_training_time(results), b_labels)  # fmt: skip
     figures = []
     for net, by_method in results.items():
-        fig = out / f"table3_{net}_curves.png"
+        fig = out / f"{stem}_{net}_curves.png"
         marks = {b_labels.get(net, {}).get(b, BASELINE_LABELS[b]): {"success": r.success_rate, "collision": r.collision_rate}
                  for b, r in baselines.get(net, {}).items() if b in ("gap_acceptance", "sumo")}  # fmt: skip
         plot_eval_curves(by_method, labels, fig, metrics=("success", "collision"), baselines=marks,
