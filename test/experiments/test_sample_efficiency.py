@@ -16,7 +16,7 @@ from der_ros.experiments import sample_efficiency
 from der_ros.experiments.aggregate import Interval, probability_of_improvement, verdict
 from der_ros.experiments.sample_efficiency import efficiency_section, steps_to_reach, success_auc
 from der_ros.experiments.suite import RunResult, RunSpec, methods_by_name
-from der_ros.train.evaluation import EVALUATIONS_CSV, FINAL_EVAL_JSON, EpisodeResult, EvalResult, write_eval_row
+from der_ros.train.eval_result import EVALUATIONS_CSV, FINAL_EVAL_JSON, EpisodeResult, EvalResult, write_eval_row
 
 S = 1_000_000_000
 LABELS = {m.name: m.label for m in methods_by_name(None)} | {
