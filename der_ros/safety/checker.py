@@ -14,7 +14,10 @@ A lane change to a side is safe when
   the follower as the rear car,
 
 each distance from :func:`der_ros.safety.rss.safe_longitudinal_distance` plus ``margin``. An empty
-slot means no vehicle within the neighbour range (30 m): it imposes nothing. Keep lane is always
+slot means no vehicle within the neighbour range (30 m): it imposes nothing, except that with
+``unobserved_speed`` > 0 an empty *follower* slot stands for a car at the range driving at that speed
+(the fastest car that may be just out of sight; an unseen leader is the ego's own car-following's
+business, as the own-lane leader is). Keep lane is always
 safe. A malformed ego row (non-finite numbers, a wrong shape) allows keep only: the shield fails
 safe. What this does *not* cover is in docs/safety.md.
 """
@@ -27,7 +30,7 @@ import numpy as np
 
 from der_ros.safety.config import SafetyConfig
 from der_ros.safety.rss import safe_longitudinal_distance
-from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES
+from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, ObservationConfig
 
 __all__ = ["RssChecker", "N_ACTIONS", "SIDES"]
 
@@ -46,9 +49,19 @@ _SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
 class RssChecker:
     """``mask(points)``: a bool array over (keep, left, right), True where the action is safe."""
 
-    def __init__(self, cfg: SafetyConfig) -> None:
+    def __init__(self, cfg: SafetyConfig, neighbour_range: float = ObservationConfig.neighbour_range) -> None:
         self.cfg = cfg
         self._params = (cfg.response_time, cfg.accel_max, cfg.brake_min, cfg.brake_max)
+        #: where an empty slot's unseen car may be (the observation's neighbour range, metres of gap)
+        self.neighbour_range = float(neighbour_range)
+        self._unseen = (cfg.response_time, cfg.accel_max, cfg.unobserved_brake, cfg.brake_max)
+
+    def unobserved_follower_distance(self, v_ego: float) -> float:
+        """Safe gap (m) to the car an empty follower slot may hide (``unobserved_speed``, braking at
+        ``unobserved_brake``); 0 when ``unobserved_speed`` is 0 (an empty slot imposes nothing)."""
+        if self.cfg.unobserved_speed <= 0.0:
+            return 0.0
+        return safe_longitudinal_distance(self.cfg.unobserved_speed, v_ego, *self._unseen) + self.cfg.margin
 
     def leader_distance(self, v_ego: float, v_leader: float) -> float:
         """Safe gap (m) to a new leader: the ego is the rear car."""
@@ -70,11 +83,14 @@ class RssChecker:
         for slot, is_leader in ((f"{side}_leader", True), (f"{side}_follower", False)):
             row = points[_ROW[slot]]
             if not row[_PRESENT] > 0.5:
-                continue
-            gap, v = float(row[_GAP]), v_ego + float(row[_REL])
-            if not (math.isfinite(gap) and math.isfinite(v)):
-                return False
-            need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
+                if is_leader or self.cfg.unobserved_speed <= 0.0:
+                    continue
+                gap, need = self.neighbour_range, self.unobserved_follower_distance(v_ego)  # the unseen car, at the range
+            else:
+                gap, v = float(row[_GAP]), v_ego + float(row[_REL])
+                if not (math.isfinite(gap) and math.isfinite(v)):
+                    return False
+                need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
             if not gap > need:
                 return False
         return True
