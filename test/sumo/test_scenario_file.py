@@ -250,3 +250,10 @@ def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: 
     assert env_cfg.id == SCENARIO_ENV_ID and env_cfg.kwargs["scenario"]["file"] == str(TINY / "tiny.yaml")
     with pytest.raises(ScenarioFileError):
         build_graph_params({}, steps=100, scenario=str(tmp_path / "nope.yaml"), run_dir=tmp_path)
+    # the scenario's safety section reaches the safety node, where it is the more cautious value
+    shield = build_graph_params({}, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
+    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (7.0, 33.33)
+    base = {"safety_node": {"ros__parameters": {"safety": {"brake_min": 4.5}}}}
+    shield = build_graph_params(base, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
+    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (4.5, 33.33)
+    assert "safety.unobserved_speed" not in params["safety_node"]["ros__parameters"]  # tiny has no section
