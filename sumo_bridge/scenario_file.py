@@ -74,7 +74,8 @@ _TOP_KEYS = ("name", "network", "demand", "ego", "goal", "horizon", "reward", "a
 #: lowest allowed values (a braking must be > 0: ``low`` is exclusive for those)
 SAFETY_KEYS: dict[str, tuple[float, bool]] = {"response_time": (0.0, True), "accel_max": (0.0, True),
                                               "brake_min": (0.0, False), "brake_max": (0.0, False),
-                                              "unobserved_speed": (0.0, True), "unobserved_brake": (0.0, False)}  # fmt: skip
+                                              "unobserved_speed": (0.0, True), "unobserved_brake": (0.0, False),
+                                              "lane_end": (0.0, True)}  # fmt: skip  (lane_end: true / false)
 _REWARD_FIELDS = {"success": "reward_success", "collision": "reward_collision", "missed": "reward_missed",
                   "min_speed": "min_speed"}  # fmt: skip
 
@@ -148,7 +149,7 @@ class ScenarioSpec:
     traffic: TrafficSpec
     config: ScenarioConfig
     lane_counts: dict[str, int] = field(default_factory=dict)
-    safety: dict[str, float] = field(default_factory=dict)
+    safety: dict[str, Any] = field(default_factory=dict)
     """the ``safety:`` section: the fleet's worst case for the RSS shield (only the keys the file gives)"""
 
 
@@ -367,10 +368,15 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
                         goal=goal, traffic=traffic, config=config, lane_counts=lane_counts, safety=safety)  # fmt: skip
 
 
-def _safety(path: Path, data: Any) -> dict[str, float]:
+def _safety(path: Path, data: Any) -> dict[str, Any]:
     """The ``safety:`` section: numbers within the RSS parameters' ranges, keyed by :data:`SAFETY_KEYS`."""
-    out: dict[str, float] = {}
+    out: dict[str, Any] = {}
     for k, v in _mapping(path, data, "safety", tuple(SAFETY_KEYS)).items():
+        if k == "lane_end":
+            if not isinstance(v, bool):
+                raise _fail(path, "safety.lane_end", f"{v!r}, expected true or false")
+            out[k] = v
+            continue
         low, inclusive = SAFETY_KEYS[k]
         value = _number(path, f"safety.{k}", v, low)
         if not inclusive and value <= low:

@@ -41,7 +41,7 @@ SIDES: dict[int, tuple[str, int]] = {1: ("left", 1), 2: ("right", -1)}
 
 _COL = {name: i for i, name in enumerate(POINT_FIELDS)}
 _SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
-_PRESENT, _LANES = _COL["present"], _COL["lane_count"]
+_PRESENT, _LANES, _TARGET = _COL["present"], _COL["lane_count"], _COL["target_lane"]
 _ROW = {name: 1 + i for i, name in enumerate(SLOT_NAMES)}
 _SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
 
@@ -71,6 +71,16 @@ class RssChecker:
         """Safe gap (m) to a new follower: the follower is the rear car."""
         return safe_longitudinal_distance(v_follower, v_ego, *self._params) + self.cfg.margin
 
+    def lane_end_safe(self, v_ego: float, to_diverge: float, to_target: float, offset: int) -> bool:
+        """False when a change by ``offset`` does not move toward the target lane (``to_target`` lanes away) and the
+        ego, which must then stop at the diverge ``to_diverge`` metres ahead (its lane does not lead to the goal),
+        would brake harder than ``brake_max`` there: no car behind may be assumed to expect that. A gap of 0 means
+        no diverge ahead (ring, urban, past it)."""
+        toward = (to_target > 0.0 and offset > 0) or (to_target < 0.0 and offset < 0)
+        if toward or not to_diverge > 0.0:
+            return True
+        return v_ego * v_ego / (2.0 * to_diverge) <= self.cfg.brake_max
+
     def change_safe(self, points: np.ndarray | list[list[float]], action: int) -> bool:
         """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists)."""
         side, offset = SIDES[action]
@@ -80,6 +90,8 @@ class RssChecker:
             return False
         if not 0 <= lane + offset < lanes:
             return False  # no lane on that side
+        if self.cfg.lane_end and not self.lane_end_safe(v_ego, float(ego[_GAP]), float(ego[_TARGET]) - lane, offset):
+            return False
         for slot, is_leader in ((f"{side}_leader", True), (f"{side}_follower", False)):
             row = points[_ROW[slot]]
             if not row[_PRESENT] > 0.5:

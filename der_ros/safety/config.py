@@ -94,6 +94,12 @@ class SafetyConfig:
         low=0.0,
         high=100.0,
     )
+    lane_end: bool = param(
+        False,
+        "true: a change that does not move toward the target lane is unsafe when the ego would then have to brake "
+        "harder than brake_max to stop at the diverge ahead (the ego row's gap; scenario files with a goal edge, "
+        "where every other lane ends for the ego). No effect where that gap is 0 (ring, urban)",
+    )
     unobserved_brake: float = param(
         9.0,
         "m/s^2 (> 0): the braking that unobserved car applies at least once it reacts (a car at the speed limit: "
@@ -116,24 +122,24 @@ class SafetyConfig:
 
 #: scenario ``safety:`` fields -> True where a larger value is the more cautious one
 FLEET_FIELDS: dict[str, bool] = {"response_time": True, "accel_max": True, "brake_min": False, "brake_max": True,
-                                 "unobserved_speed": True, "unobserved_brake": False}  # fmt: skip
+                                 "unobserved_speed": True, "unobserved_brake": False, "lane_end": True}  # fmt: skip
 
 
-def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | None]) -> SafetyConfig:
+def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) -> SafetyConfig:
     """``cfg`` made at least as cautious as a scenario's fleet (its file's ``safety:`` section).
 
     Per field the more cautious of the two: the longer response time, the larger acceleration and
     front-car braking, the *smaller* rear-car braking (a truck that stops at 7 m/s^2 cannot be assumed
-    to brake at 9), the faster unobserved car. Fields the section leaves out (None) keep ``cfg``'s
+    to brake at 9), the faster unobserved car, the lane-end check on if either asks for it. Fields the section leaves out (None) keep ``cfg``'s
     value, so a scenario without the section (ring, urban) leaves the shield exactly as configured.
     """
-    changes: dict[str, float] = {}
+    changes: dict[str, float | bool] = {}
     for name, larger in FLEET_FIELDS.items():
         value = fleet.get(name)
         if value is None:
             continue
-        mine = float(getattr(cfg, name))
-        pick = max(mine, float(value)) if larger else min(mine, float(value))
+        mine = getattr(cfg, name)
+        pick = max(mine, value) if larger else min(mine, value)
         if pick != mine:
-            changes[name] = pick
+            changes[name] = type(mine)(pick)
     return dataclasses.replace(cfg, **changes) if changes else cfg

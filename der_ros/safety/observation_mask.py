@@ -66,5 +66,10 @@ class ObservationMask:
                 if not is_leader and self.cfg.unobserved_speed > 0.0:  # the unseen follower at the range
                     unseen = _rss(np.full_like(v_ego, self.cfg.unobserved_speed), v_ego, self.cfg, self.cfg.unobserved_brake)
                     ok &= present | (rng > unseen)
+            if self.cfg.lane_end and self.obs_cfg.goal_distance_scale > 0:  # the diverge ahead (observed)
+                toward = x[:, _EGO["target_direction"]] * (1 if side == "left" else -1) > 0.5
+                to_diverge = x[:, -1] * self.obs_cfg.goal_distance_scale
+                forced = np.where(to_diverge > 0, v_ego * v_ego / (2.0 * np.maximum(to_diverge, 1e-9)), 0.0)
+                ok &= toward | (forced <= self.cfg.brake_max)
             out[:, action] = ok
         return out

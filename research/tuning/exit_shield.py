@@ -6,11 +6,11 @@ the new one). Drivers: the rule baselines behind the shield (``immediate`` asks 
 ``random`` draws all five actions, ``gap_acceptance`` the tuned rule) and, with ``--runs``, trained
 checkpoints greedily. Seeds: TUNING_EVAL_SEED_BASE + k, never a report seed.
 
-    python research/tuning/exit_shield.py --episodes 300 --arm old 0 9 --arm new 30 7 \\
+    python research/tuning/exit_shield.py --episodes 300 --arm old 0 9 0 --arm exit 33.33 7 1 \\
         [--drivers immediate random gap_acceptance] [--runs RUN_DIR ...]
 
-An arm is NAME UNOBSERVED_SPEED BRAKE_MIN (the unseen car brakes at unobserved_brake 9; the ring's other
-parameters: rho 0.1 s, accel_max 2.6, brake_max 9).
+An arm is NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END (0/1) (the unseen car brakes at unobserved_brake 9; the
+ring's other parameters: rho 0.1 s, accel_max 2.6, brake_max 9).
 Targets commit 'exitshield' of der_ros.
 """
 
@@ -53,7 +53,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="config/exit.yaml")
     ap.add_argument("--episodes", type=int, default=300)
-    ap.add_argument("--arm", nargs=3, action="append", metavar=("NAME", "UNOBSERVED_SPEED", "BRAKE_MIN"), required=True)
+    ap.add_argument("--arm", nargs=4, action="append", metavar=("NAME", "UNOBSERVED_SPEED", "BRAKE_MIN", "LANE_END"),
+                    required=True)
     ap.add_argument("--drivers", nargs="*", default=["immediate", "random", "gap_acceptance"])
     ap.add_argument("--runs", nargs="*", type=Path, default=[], help="run directories (config.yaml + checkpoint.pt)")
     args = ap.parse_args()
@@ -61,24 +62,26 @@ def main() -> None:
     gap = load_gap_params("exit")
     t0 = time.perf_counter()
     print(f"{args.config}, {args.episodes} tuning episodes (seeds {TUNING_EVAL_SEED_BASE}+k) per row")
-    print("| driver | shield | unobserved_speed | brake_min | success | caused | time limit | missed | interventions/ep | caused seeds |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| driver | shield | unobserved_speed | brake_min | lane_end | success | caused | time limit | missed | "
+          "interventions/ep | caused seeds |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     drivers = [(d, None) for d in args.drivers] + [(f"{r.parent.name}/{r.name}", r) for r in args.runs]
     for name, run_dir in drivers:
-        for arm, unseen, bmin in args.arm:
-            shield = SafetyConfig(kind="rss", unobserved_speed=float(unseen), brake_min=float(bmin))
+        for arm, unseen, bmin, lane_end in args.arm:
+            shield = SafetyConfig(kind="rss", unobserved_speed=float(unseen), brake_min=float(bmin),
+                                  lane_end=bool(int(lane_end)))
             if run_dir is None:
                 env_cfg = dataclasses.replace(cfg.env, safety=shield)
                 policy_for = lambda n, name=name: baseline_policy(name, gap, n_actions=n)  # noqa: E731
             else:
                 run_env = load_experiment_config(run_dir / "config.yaml").env
                 env_cfg = dataclasses.replace(run_env, safety=dataclasses.replace(run_env.safety, **{
-                    k: getattr(shield, k) for k in ("unobserved_speed", "brake_min")}))
+                    k: getattr(shield, k) for k in ("unobserved_speed", "brake_min", "lane_end")}))
                 agent = DQNAgent.load(run_dir / "checkpoint.pt")
                 agent.q_net.eval()
                 policy_for = lambda n, net=agent.q_net: GreedyQPolicy(net, np.float32)  # noqa: E731
             c, iv, bad = run(env_cfg, policy_for, args.episodes)
-            print(f"| {name} | {arm} | {unseen} | {bmin} | {c['success']} | {c['caused']} | {c['time_limit']} | "
+            print(f"| {name} | {arm} | {unseen} | {bmin} | {lane_end} | {c['success']} | {c['caused']} | {c['time_limit']} | "
                   f"{c['missed']} | {iv:.1f} | {bad} |", flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
 
