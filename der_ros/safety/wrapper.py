@@ -34,7 +34,7 @@ from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.scenario import ScenarioConfig
 from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
 
-__all__ = ["ShieldWrapper", "scenario_shield", "target_mask_for"]
+__all__ = ["ShieldWrapper", "scenario_shield", "shield_in_force", "target_mask_for"]
 
 
 def scenario_shield(cfg: SafetyConfig, scenario: ScenarioConfig | None) -> SafetyConfig:
@@ -89,6 +89,15 @@ class ShieldWrapper(gym.Wrapper):
         info.update(action_mask=self._mask, proposed_action=int(action), applied_action=applied,
                     intervened=intervened, interventions=self.interventions)  # fmt: skip
         return obs, reward, terminated, truncated, info
+
+
+def shield_in_force(env_cfg: Any) -> SafetyConfig:
+    """The shield parameters an :class:`der_ros.train.config.EnvConfig` runs with: its ``safety`` and, on a
+    lane-change env, its scenario's fleet (:func:`scenario_shield`). What caches and records should name."""
+    network = ENV_NETWORKS.get(env_cfg.id)
+    if network is None or not env_cfg.safety.enabled:
+        return env_cfg.safety
+    return scenario_shield(env_cfg.safety, scenario_from_kwargs(network, dict(env_cfg.kwargs).get("scenario")))
 
 
 def target_mask_for(env_cfg: Any) -> ObservationMask | None:
