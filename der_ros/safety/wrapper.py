@@ -19,6 +19,7 @@ configured ones made at least as cautious as the scenario file's ``safety:`` sec
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import gymnasium as gym
@@ -33,6 +34,8 @@ from der_ros.safety.sumo_check import sumo_mask
 from sumo_bridge import ENV_NETWORKS
 from sumo_bridge.scenario import ScenarioConfig
 from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ShieldWrapper", "scenario_shield", "shield_in_force", "target_mask_for"]
 
@@ -57,6 +60,8 @@ class ShieldWrapper(gym.Wrapper):
         scenario = scenario if isinstance(scenario, ScenarioConfig) else None
         #: the parameters in force: ``cfg`` and the scenario's fleet (:func:`scenario_shield`)
         self.cfg = scenario_shield(cfg, scenario)
+        if self.cfg != cfg:
+            log.info("shield: %s's safety section makes it %s", scenario.network if scenario else "?", self.cfg)
         rng = scenario.observation.neighbour_range if scenario is not None else None
         self._rss = (RssChecker(self.cfg) if rng is None else RssChecker(self.cfg, rng)) if cfg.kind == "rss" else None
         self._mask: np.ndarray | None = None
