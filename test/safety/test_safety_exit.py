@@ -46,7 +46,7 @@ def test_the_ring_and_urban_keep_their_shield_exactly() -> None:
 
 def test_exit_states_its_fleet() -> None:
     cfg = exit_shield()
-    assert (cfg.brake_min, cfg.unobserved_speed, cfg.unobserved_brake, cfg.lane_end) == (7.0, 33.33, 9.0, True)
+    assert (cfg.brake_min, cfg.unobserved_speed, cfg.unobserved_brake, cfg.lane_end) == (9.0, 25.0, 9.0, True)
     assert (cfg.response_time, cfg.accel_max, cfg.brake_max) == (OLD.response_time, OLD.accel_max, OLD.brake_max)
 
 
@@ -58,16 +58,19 @@ def test_slow_ego_changing_in_front_of_an_unseen_fast_car_is_refused() -> None:
     diagnosed = situation(6.55, 1, right_leader=(4.0, 11.75), right_follower=(13.3, 9.75))
     assert RssChecker(OLD).mask(diagnosed)[1]
     assert not RssChecker(exit_shield()).mask(diagnosed)[1]
-    assert RssChecker(exit_shield()).mask(situation(27.0, 1))[1]  # 25.5 m needed < 30 m seen free
-    assert not RssChecker(exit_shield()).mask(situation(24.0, 1))[1]  # 34 m needed: more than is seen
+    assert RssChecker(exit_shield()).mask(situation(27.0, 1))[1]
+    assert RssChecker(exit_shield()).mask(situation(13.0, 1))[1]  # 28.6 m needed < 30 m seen free
+    assert not RssChecker(exit_shield()).mask(situation(10.0, 1))[1]  # 32.4 m needed: more than is seen
 
 
-def test_a_truck_behind_is_not_assumed_to_brake_like_a_car() -> None:
-    """A follower 28 m back at 25 m/s (a truck's top speed) behind an ego at 15 m/s: at 9 m/s^2 it needs
-    25.5 m (the old check accepts), at a truck's 7 m/s^2 35.6 m (refused); at 40 m it is accepted."""
+def test_a_fleet_with_weaker_brakes_lowers_brake_min() -> None:
+    """A section with the trucks' 7 m/s^2 (not shipped: measured only with the 33.33 m/s unseen car, too
+    costly): a follower 28 m back at 25 m/s behind an ego at 15 m/s needs 25.5 m at 9 m/s^2 (accepted) and
+    35.6 m at 7 (refused); at 40 m it is accepted."""
+    trucks = fleet_cautious(OLD, {"brake_min": 7.0})
     assert RssChecker(OLD).mask(situation(15.0, 1, left_follower=(28.0, 10.0)))[1]
-    assert not RssChecker(exit_shield()).mask(situation(15.0, 1, left_follower=(28.0, 10.0)))[1]
-    assert RssChecker(exit_shield()).mask(situation(15.0, 1, left_follower=(40.0, 10.0)))[1]
+    assert not RssChecker(trucks).mask(situation(15.0, 1, left_follower=(28.0, 10.0)))[1]
+    assert RssChecker(trucks).mask(situation(15.0, 1, left_follower=(40.0, 10.0)))[1]
 
 
 def test_leaving_the_exit_lane_just_before_the_split_is_refused() -> None:
@@ -95,7 +98,7 @@ def test_fleet_takes_the_more_cautious_value_and_never_loosens() -> None:
     assert set(FLEET_FIELDS) == set(SAFETY_KEYS)  # the scenario file accepts exactly the fleet's fields
 
 
-@pytest.mark.parametrize("speed", [0.0, 33.33])
+@pytest.mark.parametrize("speed", [0.0, 25.0])
 def test_observation_mask_agrees_with_the_checker_on_empty_slots(speed: float) -> None:
     """Mask mode's learner target (from stored observations) applies the unseen follower as the checker does."""
     cfg = dataclasses.replace(exit_shield(), unobserved_speed=speed)

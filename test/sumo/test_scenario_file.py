@@ -129,7 +129,7 @@ def test_safety_section_is_read_and_optional(tmp_path: Path) -> None:
     assert load_scenario(path).safety == {"brake_min": 7.0, "unobserved_speed": 30.5}
     assert load_scenario(TINY / "tiny.yaml").safety == {}
     assert load_scenario(shipped_scenario("ring")).safety == {} == load_scenario(shipped_scenario("urban")).safety
-    assert load_scenario(shipped_scenario("exit")).safety == {"brake_min": 7.0, "unobserved_speed": 33.33, "lane_end": True}
+    assert load_scenario(shipped_scenario("exit")).safety == {"unobserved_speed": 25.0, "lane_end": True}
 
 
 def test_der_train_with_a_bad_scenario_file_fails_before_sumo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -253,8 +253,8 @@ def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: 
         build_graph_params({}, steps=100, scenario=str(tmp_path / "nope.yaml"), run_dir=tmp_path)
     # the scenario's safety section reaches the safety node, where it is the more cautious value
     shield = build_graph_params({}, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
-    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"], shield["safety.lane_end"]) == (7.0, 33.33, True)
-    base = {"safety_node": {"ros__parameters": {"safety": {"brake_min": 4.5}}}}
+    assert (shield["safety.unobserved_speed"], shield["safety.lane_end"]) == (25.0, True) and "safety.brake_min" not in shield
+    base = {"safety_node": {"ros__parameters": {"safety": {"brake_min": 4.5, "unobserved_speed": 20.0}}}}
     shield = build_graph_params(base, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
-    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (4.5, 33.33)
+    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (4.5, 25.0)
     assert "safety.unobserved_speed" not in params["safety_node"]["ros__parameters"]  # tiny has no section
