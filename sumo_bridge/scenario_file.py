@@ -30,7 +30,7 @@ Layout (paths relative to the scenario file)::
     traffic: {warmup_seconds: 120, ego_gap_seconds: 1, miss_zone: 100, halt_speed: 0.5, halt_seconds: 2,
               teleport_seconds: 20}
     settings: {...}                     # any other sumo_bridge.scenario.ScenarioConfig field
-    safety: {brake_min: 7, unobserved_speed: 30}   # the fleet's worst case for the RSS shield (optional;
+    safety: {unobserved_speed: 25, lane_end: true}  # the fleet's worst case for the RSS shield (optional;
                                         # der_ros.safety.config.fleet_cautious: the more cautious value wins)
 
 YAML is read by :func:`read_yaml_text` (the project-wide strict loader, :mod:`der_ros.yaml_loader`).

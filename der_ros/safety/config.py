@@ -14,7 +14,8 @@ allowed (105 of 200 tuning episodes against 200), with no caused collision eithe
 ``unobserved_speed`` covers what the observation does not show: with it > 0 an empty follower slot
 on the target side stands for a vehicle just beyond the neighbour range driving at that speed (RSS's
 worst case for an occluded car). On the ``exit`` scenario a slow ego (1-7 m/s at the split) changed in
-front of cars at 25-29 m/s 32-37 m behind, just out of sight, and was hit
+front of cars at 25-29 m/s 32-37 m behind, just out of sight, and was hit; ``lane_end`` refuses a change
+away from the target lane that would make the ego stop harder than ``brake_max`` at the split
 (docs/safety.md, "The exit scenario"). A scenario file's ``safety:`` section states its fleet's
 worst case (:func:`fleet_cautious`); the shield then takes the more cautious of the two values.
 """
