@@ -30,6 +30,8 @@ Layout (paths relative to the scenario file)::
     traffic: {warmup_seconds: 120, ego_gap_seconds: 1, miss_zone: 100, halt_speed: 0.5, halt_seconds: 2,
               teleport_seconds: 20}
     settings: {...}                     # any other sumo_bridge.scenario.ScenarioConfig field
+    safety: {unobserved_speed: 25, lane_end: true}  # the fleet's worst case for the RSS shield (optional;
+                                        # der_ros.safety.config.fleet_cautious: the more cautious value wins)
 
 YAML is read by :func:`read_yaml_text` (the project-wide strict loader, :mod:`der_ros.yaml_loader`).
 """
@@ -67,7 +69,13 @@ __all__ = [
 
 #: Scenario files shipped with the package (``ring``, ``urban``, ``exit``).
 SHIPPED_DIR = Path(__file__).resolve().parent / "scenarios"
-_TOP_KEYS = ("name", "network", "demand", "ego", "goal", "horizon", "reward", "actions", "traffic", "settings")
+_TOP_KEYS = ("name", "network", "demand", "ego", "goal", "horizon", "reward", "actions", "traffic", "settings", "safety")
+#: ``safety:`` keys (the RSS parameters that describe a fleet; der_ros.safety.config.FLEET_FIELDS) and their
+#: lowest allowed values (a braking must be > 0: ``low`` is exclusive for those)
+SAFETY_KEYS: dict[str, tuple[float, bool]] = {"response_time": (0.0, True), "accel_max": (0.0, True),
+                                              "brake_min": (0.0, False), "brake_max": (0.0, False),
+                                              "unobserved_speed": (0.0, True), "unobserved_brake": (0.0, False),
+                                              "lane_end": (0.0, True)}  # fmt: skip  (lane_end: true / false)
 _REWARD_FIELDS = {"success": "reward_success", "collision": "reward_collision", "missed": "reward_missed",
                   "min_speed": "min_speed"}  # fmt: skip
 
@@ -141,6 +149,8 @@ class ScenarioSpec:
     traffic: TrafficSpec
     config: ScenarioConfig
     lane_counts: dict[str, int] = field(default_factory=dict)
+    safety: dict[str, Any] = field(default_factory=dict)
+    """the ``safety:`` section: the fleet's worst case for the RSS shield (only the keys the file gives)"""
 
 
 def read_yaml_text(path: Path) -> Any:
@@ -353,8 +363,28 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
     if not builtin and config.observation.max_lanes < most:
         raise _fail(path, "settings.observation.max_lanes", f"{config.observation.max_lanes}, expected >= {most} (the "
                     "most lanes on the ego's route)")  # fmt: skip
+    safety = _safety(path, top.get("safety"))
     return ScenarioSpec(path=path, name=name, network=src, demand=demand, ego=EgoSpec(tuple(route), lane, str(ego_raw.get("type", "ego")), depart_pos),
-                        goal=goal, traffic=traffic, config=config, lane_counts=lane_counts)  # fmt: skip
+                        goal=goal, traffic=traffic, config=config, lane_counts=lane_counts, safety=safety)  # fmt: skip
+
+
+def _safety(path: Path, data: Any) -> dict[str, Any]:
+    """The ``safety:`` section: numbers within the RSS parameters' ranges, keyed by :data:`SAFETY_KEYS`."""
+    out: dict[str, Any] = {}
+    for k, v in _mapping(path, data, "safety", tuple(SAFETY_KEYS)).items():
+        if k == "lane_end":
+            if not isinstance(v, bool):
+                raise _fail(path, "safety.lane_end", f"{v!r}, expected true or false")
+            out[k] = v
+            continue
+        low, inclusive = SAFETY_KEYS[k]
+        value = _number(path, f"safety.{k}", v, low)
+        if not inclusive and value <= low:
+            raise _fail(path, f"safety.{k}", f"{v!r}, expected > {low:g}")
+        if value != value or value in (float("inf"), float("-inf")):
+            raise _fail(path, f"safety.{k}", f"{v!r}, expected a finite number")
+        out[k] = value
+    return out
 
 
 def _config(path: Path, top: dict[str, Any], name: str, builtin: bool, lane: int, goal: GoalSpec,

@@ -56,7 +56,8 @@ import yaml
 from der_ros.configuration import ConfigError, read_yaml_mapping, to_dict, validate
 from der_ros.experiments.rule_params import lane_change_entries, load_mobil_params, load_sumo_tuned_params
 from der_ros.experiments.table_report import write_markdown
-from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES
+from der_ros.safety.config import SAFETY_KINDS, SAFETY_MODES, SafetyConfig
+from der_ros.safety.wrapper import shield_in_force
 from der_ros.train.config import EnvConfig, load_experiment_config
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.eval_episodes import run_episodes
@@ -305,7 +306,9 @@ class BaselineJob:
                "episodes_per_seed": self.episodes_per_seed, "seed_base": self.seed_base,
                "gap": None if self.gap is None else self.gap.__dict__}  # fmt: skip
         if self.env_cfg.safety.enabled:  # (absent without a shield: earlier caches stay valid)
-            out["safety"] = to_dict(self.env_cfg.safety)
+            shield, default = to_dict(shield_in_force(self.env_cfg)), to_dict(SafetyConfig())  # with the scenario's fleet
+            out["safety"] = {k: v for k, v in shield.items()  # fields added 2026-12-07 only when set: ring caches stay valid
+                             if k not in ("unobserved_speed", "unobserved_brake", "lane_end") or v != default[k]}
         if self.params is not None:  # (likewise)
             out["params"] = dataclasses.asdict(self.params) if dataclasses.is_dataclass(self.params) else self.params
         return out

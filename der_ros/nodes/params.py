@@ -65,7 +65,8 @@ from der_ros.nodes.param_check import (
 )
 from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 from sumo_bridge.network_build import NETWORK_NAMES
-from sumo_bridge.scenario_file import load_scenario_config
+from der_ros.safety.config import FLEET_FIELDS, SafetyConfig
+from sumo_bridge.scenario_file import load_scenario, load_scenario_config
 
 __all__ = [
     "ConfigParameters",
@@ -373,6 +374,11 @@ def build_graph_params(
         put("agent_node", "n_actions", len(file_cfg.actions), "--scenario")
         for name, value in flatten_names(to_dict(file_cfg.observation)).items():  # the agent encodes the same way
             put("agent_node", f"observation.{name}", value, "--scenario")
+        shield = params["safety_node"]["ros__parameters"]
+        for name, value in load_scenario(file_cfg.file).safety.items():  # the fleet's worst case: the cautious value
+            mine = float(shield.get(f"safety.{name}", getattr(SafetyConfig(), name)))
+            if (value > mine) if FLEET_FIELDS[name] else (value < mine):
+                put("safety_node", f"safety.{name}", value, "--scenario")
     if free_run:
         put("bridge_node", "mode", "free_run", "--free-run")
     if replay is not None:

@@ -14,7 +14,10 @@ A lane change to a side is safe when
   the follower as the rear car,
 
 each distance from :func:`der_ros.safety.rss.safe_longitudinal_distance` plus ``margin``. An empty
-slot means no vehicle within the neighbour range (30 m): it imposes nothing. Keep lane is always
+slot means no vehicle within the neighbour range (30 m): it imposes nothing, except that with
+``unobserved_speed`` > 0 an empty *follower* slot stands for a car at the range driving at that speed
+(the fastest car that may be just out of sight; an unseen leader is the ego's own car-following's
+business, as the own-lane leader is). Keep lane is always
 safe. A malformed ego row (non-finite numbers, a wrong shape) allows keep only: the shield fails
 safe. What this does *not* cover is in docs/safety.md.
 """
@@ -27,7 +30,7 @@ import numpy as np
 
 from der_ros.safety.config import SafetyConfig
 from der_ros.safety.rss import safe_longitudinal_distance
-from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES
+from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, ObservationConfig
 
 __all__ = ["RssChecker", "N_ACTIONS", "SIDES"]
 
@@ -38,7 +41,7 @@ SIDES: dict[int, tuple[str, int]] = {1: ("left", 1), 2: ("right", -1)}
 
 _COL = {name: i for i, name in enumerate(POINT_FIELDS)}
 _SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL["lane"]
-_PRESENT, _LANES = _COL["present"], _COL["lane_count"]
+_PRESENT, _LANES, _TARGET = _COL["present"], _COL["lane_count"], _COL["target_lane"]
 _ROW = {name: 1 + i for i, name in enumerate(SLOT_NAMES)}
 _SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
 
@@ -46,9 +49,19 @@ _SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
 class RssChecker:
     """``mask(points)``: a bool array over (keep, left, right), True where the action is safe."""
 
-    def __init__(self, cfg: SafetyConfig) -> None:
+    def __init__(self, cfg: SafetyConfig, neighbour_range: float = ObservationConfig.neighbour_range) -> None:
         self.cfg = cfg
         self._params = (cfg.response_time, cfg.accel_max, cfg.brake_min, cfg.brake_max)
+        #: where an empty slot's unseen car may be (the observation's neighbour range, metres of gap)
+        self.neighbour_range = float(neighbour_range)
+        self._unseen = (cfg.response_time, cfg.accel_max, cfg.unobserved_brake, cfg.brake_max)
+
+    def unobserved_follower_distance(self, v_ego: float) -> float:
+        """Safe gap (m) to the car an empty follower slot may hide (``unobserved_speed``, braking at
+        ``unobserved_brake``); 0 when ``unobserved_speed`` is 0 (an empty slot imposes nothing)."""
+        if self.cfg.unobserved_speed <= 0.0:
+            return 0.0
+        return safe_longitudinal_distance(self.cfg.unobserved_speed, v_ego, *self._unseen) + self.cfg.margin
 
     def leader_distance(self, v_ego: float, v_leader: float) -> float:
         """Safe gap (m) to a new leader: the ego is the rear car."""
@@ -57,6 +70,16 @@ class RssChecker:
     def follower_distance(self, v_ego: float, v_follower: float) -> float:
         """Safe gap (m) to a new follower: the follower is the rear car."""
         return safe_longitudinal_distance(v_follower, v_ego, *self._params) + self.cfg.margin
+
+    def lane_end_safe(self, v_ego: float, to_diverge: float, to_target: float, offset: int) -> bool:
+        """False when a change by ``offset`` does not move toward the target lane (``to_target`` lanes away) and the
+        ego, which must then stop at the diverge ``to_diverge`` metres ahead (its lane does not lead to the goal),
+        would brake harder than ``brake_max`` there: no car behind may be assumed to expect that. A gap of 0 means
+        no diverge ahead (ring, urban, past it)."""
+        toward = (to_target > 0.0 and offset > 0) or (to_target < 0.0 and offset < 0)
+        if toward or not to_diverge > 0.0:
+            return True
+        return v_ego * v_ego / (2.0 * to_diverge) <= self.cfg.brake_max
 
     def change_safe(self, points: np.ndarray | list[list[float]], action: int) -> bool:
         """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists)."""
@@ -67,14 +90,19 @@ class RssChecker:
             return False
         if not 0 <= lane + offset < lanes:
             return False  # no lane on that side
+        if self.cfg.lane_end and not self.lane_end_safe(v_ego, float(ego[_GAP]), float(ego[_TARGET]) - lane, offset):
+            return False
         for slot, is_leader in ((f"{side}_leader", True), (f"{side}_follower", False)):
             row = points[_ROW[slot]]
             if not row[_PRESENT] > 0.5:
-                continue
-            gap, v = float(row[_GAP]), v_ego + float(row[_REL])
-            if not (math.isfinite(gap) and math.isfinite(v)):
-                return False
-            need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
+                if is_leader or self.cfg.unobserved_speed <= 0.0:
+                    continue
+                gap, need = self.neighbour_range, self.unobserved_follower_distance(v_ego)  # the unseen car, at the range
+            else:
+                gap, v = float(row[_GAP]), v_ego + float(row[_REL])
+                if not (math.isfinite(gap) and math.isfinite(v)):
+                    return False
+                need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
             if not gap > need:
                 return False
         return True

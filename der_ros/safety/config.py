@@ -10,16 +10,26 @@ SUMO's passenger car's (2.6 m/s^2), and both brakings its emergency deceleration
 driver is assumed able to brake as hard as the car ahead of it. Textbook RSS assumes less of the
 rear car (brake_min 4-4.5); on the ring that halves the success of a driver that changes whenever
 allowed (105 of 200 tuning episodes against 200), with no caused collision either way.
+
+``unobserved_speed`` covers what the observation does not show: with it > 0 an empty follower slot
+on the target side stands for a vehicle just beyond the neighbour range driving at that speed (RSS's
+worst case for an occluded car). On the ``exit`` scenario a slow ego (1-7 m/s at the split) changed in
+front of cars at 25-29 m/s 32-37 m behind, just out of sight, and was hit; ``lane_end`` refuses a change
+away from the target lane that would make the ego stop harder than ``brake_max`` at the split
+(docs/safety.md, "The exit scenario"). A scenario file's ``safety:`` section states its fleet's
+worst case (:func:`fleet_cautious`); the shield then takes the more cautious of the two values.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from der_ros.configuration import ConfigError, param
 
-__all__ = ["SAFETY_KINDS", "SAFETY_MODES", "SafetyConfig"]
+__all__ = ["SAFETY_KINDS", "SAFETY_MODES", "SafetyConfig", "fleet_cautious"]
 
 #: ``none``: no shield; ``rss``: our RSS check on the observed neighbours; ``sumo``: SUMO's own verdict
 SAFETY_KINDS: tuple[str, ...] = ("none", "rss", "sumo")
@@ -77,9 +87,31 @@ class SafetyConfig:
         low=0.0,
         high=100.0,
     )
+    unobserved_speed: float = param(
+        0.0,
+        "m/s: > 0: an empty follower slot on the target side is taken to hold a car just beyond the neighbour "
+        "range (30 m) driving at this speed, and the change must keep the RSS distance to it; 0 (the ring's "
+        "setting): an empty slot imposes nothing. A scenario file's safety section may raise it",
+        low=0.0,
+        high=100.0,
+    )
+    lane_end: bool = param(
+        False,
+        "true: a change that does not move toward the target lane is unsafe when the ego would then have to brake "
+        "harder than brake_max to stop at the diverge ahead (the ego row's gap; scenario files with a goal edge, "
+        "where every other lane ends for the ego). No effect where that gap is 0 (ring, urban)",
+    )
+    unobserved_brake: float = param(
+        9.0,
+        "m/s^2 (> 0): the braking that unobserved car applies at least once it reacts (a car at the speed limit: "
+        "SUMO's passenger car's emergency decel, 9; brake_min may be lower for the observed followers, e.g. trucks)",
+        low=0.1,
+        high=20.0,
+    )
 
     def check(self) -> None:
-        for name in ("response_time", "accel_max", "brake_min", "brake_max", "margin"):
+        for name in ("response_time", "accel_max", "brake_min", "brake_max", "margin", "unobserved_speed",
+                     "unobserved_brake"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ConfigError(f"safety.{name} = {value!r}, expected a finite number")
@@ -87,3 +119,28 @@ class SafetyConfig:
     @property
     def enabled(self) -> bool:
         return self.kind != "none"
+
+
+#: scenario ``safety:`` fields -> True where a larger value is the more cautious one
+FLEET_FIELDS: dict[str, bool] = {"response_time": True, "accel_max": True, "brake_min": False, "brake_max": True,
+                                 "unobserved_speed": True, "unobserved_brake": False, "lane_end": True}  # fmt: skip
+
+
+def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) -> SafetyConfig:
+    """``cfg`` made at least as cautious as a scenario's fleet (its file's ``safety:`` section).
+
+    Per field the more cautious of the two: the longer response time, the larger acceleration and
+    front-car braking, the *smaller* rear-car braking (a truck that stops at 7 m/s^2 cannot be assumed
+    to brake at 9), the faster unobserved car, the lane-end check on if either asks for it. Fields the section leaves out (None) keep ``cfg``'s
+    value, so a scenario without the section (ring, urban) leaves the shield exactly as configured.
+    """
+    changes: dict[str, float | bool] = {}
+    for name, larger in FLEET_FIELDS.items():
+        value = fleet.get(name)
+        if value is None:
+            continue
+        mine = getattr(cfg, name)
+        pick = max(mine, value) if larger else min(mine, value)
+        if pick != mine:
+            changes[name] = type(mine)(pick)
+    return dataclasses.replace(cfg, **changes) if changes else cfg

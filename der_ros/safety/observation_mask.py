@@ -29,12 +29,14 @@ def _slot_col(slot: str, feature: str) -> int:
     return len(EGO_FEATURES) + len(SLOT_FEATURES) * SLOT_NAMES.index(slot) + _FEAT[feature]
 
 
-def _rss(v_rear: np.ndarray, v_front: np.ndarray, cfg: SafetyConfig) -> np.ndarray:
-    """:func:`der_ros.safety.rss.safe_longitudinal_distance` on arrays, plus the margin."""
+def _rss(v_rear: np.ndarray, v_front: np.ndarray, cfg: SafetyConfig, brake_min: float | None = None) -> np.ndarray:
+    """:func:`der_ros.safety.rss.safe_longitudinal_distance` on arrays, plus the margin (``brake_min``: the
+    rear car's, default ``cfg.brake_min``)."""
     rho, acc = cfg.response_time, cfg.accel_max
+    b_min = cfg.brake_min if brake_min is None else brake_min
     v_r, v_f = np.maximum(v_rear, 0.0), np.maximum(v_front, 0.0)
     v_after = v_r + rho * acc
-    d = v_r * rho + 0.5 * acc * rho * rho + v_after * v_after / (2.0 * cfg.brake_min) - v_f * v_f / (2.0 * cfg.brake_max)
+    d = v_r * rho + 0.5 * acc * rho * rho + v_after * v_after / (2.0 * b_min) - v_f * v_f / (2.0 * cfg.brake_max)
     return np.maximum(d, 0.0) + cfg.margin
 
 
@@ -61,5 +63,13 @@ class ObservationMask:
                 v = v_ego + x[:, _slot_col(slot, "rel_speed")] * scale
                 need = _rss(v_ego, v, self.cfg) if is_leader else _rss(v, v_ego, self.cfg)
                 ok &= ~present | (gap > need)
+                if not is_leader and self.cfg.unobserved_speed > 0.0:  # the unseen follower at the range
+                    unseen = _rss(np.full_like(v_ego, self.cfg.unobserved_speed), v_ego, self.cfg, self.cfg.unobserved_brake)
+                    ok &= present | (rng > unseen)
+            if self.cfg.lane_end and self.obs_cfg.goal_distance_scale > 0:  # the diverge ahead (observed)
+                toward = x[:, _EGO["target_direction"]] * (1 if side == "left" else -1) > 0.5
+                to_diverge = x[:, -1] * self.obs_cfg.goal_distance_scale
+                forced = np.where(to_diverge > 0, v_ego * v_ego / (2.0 * np.maximum(to_diverge, 1e-9)), 0.0)
+                ok &= toward | (forced <= self.cfg.brake_max)
             out[:, action] = ok
         return out

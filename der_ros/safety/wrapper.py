@@ -12,11 +12,14 @@ wrapper only guards). It adds to ``info``:
 * ``interventions`` -- the episode's interventions so far.
 
 The environment must be a lane-change env (``info["points"]``); ``kind: sumo`` also needs its
-simulation (``env.unwrapped.api`` and ``ego_id``) in this process.
+simulation (``env.unwrapped.api`` and ``ego_id``) in this process. The RSS parameters are the
+configured ones made at least as cautious as the scenario file's ``safety:`` section
+(:func:`scenario_shield`; the ring and urban have none, so their shield is exactly as configured).
 """
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import gymnasium as gym
@@ -25,13 +28,25 @@ import numpy as np
 from der_ros.configuration import ConfigError
 from der_ros.safety.apply import replace_unsafe
 from der_ros.safety.checker import RssChecker
-from der_ros.safety.config import SafetyConfig
+from der_ros.safety.config import SafetyConfig, fleet_cautious
 from der_ros.safety.observation_mask import ObservationMask
 from der_ros.safety.sumo_check import sumo_mask
 from sumo_bridge import ENV_NETWORKS
-from sumo_bridge.scenario import scenario_from_kwargs
+from sumo_bridge.scenario import ScenarioConfig
+from sumo_bridge.scenario_file import load_scenario, scenario_from_kwargs
 
-__all__ = ["ShieldWrapper", "target_mask_for"]
+log = logging.getLogger(__name__)
+
+__all__ = ["ShieldWrapper", "scenario_shield", "shield_in_force", "target_mask_for"]
+
+
+def scenario_shield(cfg: SafetyConfig, scenario: ScenarioConfig | None) -> SafetyConfig:
+    """The shield's parameters on ``scenario``: ``cfg`` made at least as cautious as the fleet its file's
+    ``safety:`` section states (:func:`der_ros.safety.config.fleet_cautious`); ``cfg`` itself for a
+    scenario without a file or section."""
+    if scenario is None or not scenario.file:
+        return cfg
+    return fleet_cautious(cfg, load_scenario(scenario.file).safety)
 
 
 class ShieldWrapper(gym.Wrapper):
@@ -41,8 +56,14 @@ class ShieldWrapper(gym.Wrapper):
         super().__init__(env)
         if not cfg.enabled:
             raise ConfigError("safety.kind = 'none': nothing to wrap")
-        self.cfg = cfg
-        self._rss = RssChecker(cfg) if cfg.kind == "rss" else None
+        scenario = getattr(env.unwrapped, "config", None)
+        scenario = scenario if isinstance(scenario, ScenarioConfig) else None
+        #: the parameters in force: ``cfg`` and the scenario's fleet (:func:`scenario_shield`)
+        self.cfg = scenario_shield(cfg, scenario)
+        if self.cfg != cfg:
+            log.info("shield: %s's safety section makes it %s", scenario.network if scenario else "?", self.cfg)
+        rng = scenario.observation.neighbour_range if scenario is not None else None
+        self._rss = (RssChecker(self.cfg) if rng is None else RssChecker(self.cfg, rng)) if cfg.kind == "rss" else None
         self._mask: np.ndarray | None = None
         self.interventions = 0
 
@@ -75,6 +96,15 @@ class ShieldWrapper(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+def shield_in_force(env_cfg: Any) -> SafetyConfig:
+    """The shield parameters an :class:`der_ros.train.config.EnvConfig` runs with: its ``safety`` and, on a
+    lane-change env, its scenario's fleet (:func:`scenario_shield`). What caches and records should name."""
+    network = ENV_NETWORKS.get(env_cfg.id)
+    if network is None or not env_cfg.safety.enabled:
+        return env_cfg.safety
+    return scenario_shield(env_cfg.safety, scenario_from_kwargs(network, dict(env_cfg.kwargs).get("scenario")))
+
+
 def target_mask_for(env_cfg: Any) -> ObservationMask | None:
     """The learner's next-state mask (mask mode) for an :class:`der_ros.train.config.EnvConfig`.
 
@@ -91,4 +121,4 @@ def target_mask_for(env_cfg: Any) -> ObservationMask | None:
     if network is None:
         raise ConfigError(f"env.safety.kind = 'rss' needs a lane-change env id {tuple(ENV_NETWORKS)}, got {env_cfg.id!r}")
     scenario = scenario_from_kwargs(network, dict(env_cfg.kwargs).get("scenario"))
-    return ObservationMask(cfg, scenario.observation)
+    return ObservationMask(scenario_shield(cfg, scenario), scenario.observation)

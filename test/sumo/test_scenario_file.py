@@ -95,9 +95,17 @@ _GOOD = (TINY / "tiny.yaml").read_text()
          "settings.sucess_ends_episode"),
         (_GOOD.replace("network: {nodes: tiny.nod.xml, edges: tiny.edg.xml, connections: tiny.con.xml}\n", ""),
          "network"),
+        (_GOOD + "safety: {brake_min: 0}\n", "safety.brake_min"),
+        (_GOOD + "safety: {unobserved_speed: fast}\n", "safety.unobserved_speed"),
+        (_GOOD + "safety: {response_time: -0.1}\n", "safety.response_time"),
+        (_GOOD + "safety: {brake_max: .nan}\n", "safety.brake_max"),
+        (_GOOD + "safety: {margin: 1}\n", "safety.margin"),
+        (_GOOD + "safety: 7\n", "safety"),
+        (_GOOD + "safety: {lane_end: 1}\n", "safety.lane_end"),
     ],
     ids=["missing-network", "unknown-lane", "goal-unreachable", "goal-not-on-route", "unknown-edge", "bad-yaml",
-         "bad-horizon", "bad-actions", "unknown-setting", "no-network"],
+         "bad-horizon", "bad-actions", "unknown-setting", "no-network", "safety-zero-brake", "safety-not-a-number",
+         "safety-negative", "safety-nan", "safety-unknown-key", "safety-not-a-mapping", "safety-lane-end-not-bool"],
 )
 def test_malformed_scenario_files_give_one_line_naming_file_and_field(tmp_path: Path, text: str, field: str) -> None:
     assert text != _GOOD  # the mistake was made
@@ -112,6 +120,16 @@ def test_malformed_scenario_files_give_one_line_naming_file_and_field(tmp_path: 
         assert f": {field}:" in message
         assert message.startswith(f"{path}:")  # with the line where the key is
     assert libsumo_in_use() is None  # nothing was started
+
+
+def test_safety_section_is_read_and_optional(tmp_path: Path) -> None:
+    """A scenario's ``safety:`` section: the keys it gives, nothing else; none in ring/urban; exit states its
+    trucks' emergency braking and the unobserved car's speed (docs/safety.md, "The exit scenario")."""
+    path = _write(tmp_path, _GOOD + "safety: {brake_min: 7, unobserved_speed: 30.5}\n")
+    assert load_scenario(path).safety == {"brake_min": 7.0, "unobserved_speed": 30.5}
+    assert load_scenario(TINY / "tiny.yaml").safety == {}
+    assert load_scenario(shipped_scenario("ring")).safety == {} == load_scenario(shipped_scenario("urban")).safety
+    assert load_scenario(shipped_scenario("exit")).safety == {"unobserved_speed": 25.0, "lane_end": True}
 
 
 def test_der_train_with_a_bad_scenario_file_fails_before_sumo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -233,3 +251,10 @@ def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: 
     assert env_cfg.id == SCENARIO_ENV_ID and env_cfg.kwargs["scenario"]["file"] == str(TINY / "tiny.yaml")
     with pytest.raises(ScenarioFileError):
         build_graph_params({}, steps=100, scenario=str(tmp_path / "nope.yaml"), run_dir=tmp_path)
+    # the scenario's safety section reaches the safety node, where it is the more cautious value
+    shield = build_graph_params({}, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
+    assert (shield["safety.unobserved_speed"], shield["safety.lane_end"]) == (25.0, True) and "safety.brake_min" not in shield
+    base = {"safety_node": {"ros__parameters": {"safety": {"brake_min": 4.5, "unobserved_speed": 20.0}}}}
+    shield = build_graph_params(base, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
+    assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (4.5, 25.0)
+    assert "safety.unobserved_speed" not in params["safety_node"]["ros__parameters"]  # tiny has no section
