@@ -63,9 +63,9 @@ from der_ros.nodes.param_check import (
     parameter_error,
     section_error,
 )
+from der_ros.safety.config import FLEET_FIELDS, SafetyConfig
 from der_ros.yaml_loader import YamlError, excerpt, load_yaml_text
 from sumo_bridge.network_build import NETWORK_NAMES
-from der_ros.safety.config import FLEET_FIELDS, SafetyConfig
 from sumo_bridge.scenario_file import load_scenario, load_scenario_config
 
 __all__ = [
