@@ -104,6 +104,8 @@ class SafetyNodeConfig:
         0.25, "seconds (wall clock) a lane change may wait for its state (a command can overtake it); then keep lane",
         low=0.0, low_inclusive=False)
     diagnostics_every: int = param(200, "publish safety/diagnostics every this many commands (and at exit)", low=1)
+    n_actions: int = param(3, "the scenario's actions (3: keep/left/right; 5: also faster/slower, passed like keep "
+                           "lane); der graph --scenario sets it", choices=(3, 5))
 
 
 #: argument of ``python -m der_ros.graph.composed`` that adds the safety node to the composed graph

@@ -372,6 +372,7 @@ def build_graph_params(
             put("bridge_node", f"scenario.{name}", list(value) if isinstance(value, tuple) else value, "--scenario")
         file_cfg = load_scenario_config(scenario)
         put("agent_node", "n_actions", len(file_cfg.actions), "--scenario")
+        put("safety_node", "n_actions", len(file_cfg.actions), "--scenario")
         for name, value in flatten_names(to_dict(file_cfg.observation)).items():  # the agent encodes the same way
             put("agent_node", f"observation.{name}", value, "--scenario")
         shield = params["safety_node"]["ros__parameters"]

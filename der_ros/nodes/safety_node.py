@@ -78,7 +78,7 @@ class SafetyNode(Node):
                              "use 'rss' in the graph (or der train --safety sumo in process)")  # fmt: skip
         mask = RssChecker(shield).mask if shield.kind == "rss" else _allow_all
         self.filter = CommandFilter(mask, max_state_age=self.cfg.max_state_age, max_states=self.cfg.max_states,
-                                    max_command_wait=self.cfg.max_command_wait)  # fmt: skip
+                                    max_command_wait=self.cfg.max_command_wait, n_actions=self.cfg.n_actions)  # fmt: skip
         self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"
         self.pub_cmd = self.create_publisher(Joy, COMMAND, topic_qos(COMMAND))
         self.pub_events = self.create_publisher(DiagnosticArray, SAFETY_EVENTS, topic_qos(SAFETY_EVENTS))

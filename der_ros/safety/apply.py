@@ -6,17 +6,29 @@
   learner's target, :meth:`der_ros.agent.dqn.DQNAgent.act` and ``target_mask``).
 
 Keep lane is always allowed: the shield decides lane changes only; following the leader on the own
-lane is SUMO's car-following model's job.
+lane is SUMO's car-following model's job. For the same reason the speed actions of scenarios that have
+them (``faster`` / ``slower``: they only move the ego's target speed, and SUMO's car-following still
+keeps the distance to the leader) are always allowed (:func:`with_speed_actions`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KEEP", "replace_unsafe", "masked_argmax"]
+__all__ = ["KEEP", "replace_unsafe", "masked_argmax", "with_speed_actions"]
 
 #: the action every verdict allows (``ACTION_NAMES[0]``)
 KEEP = 0
+
+
+def with_speed_actions(mask: np.ndarray, n_actions: int) -> np.ndarray:
+    """The lane verdict ``mask`` (keep, left, right; last axis) widened to ``n_actions``: the speed actions
+    (indices 3 and up) allowed, as keep lane is. ``n_actions`` <= the mask's width returns it unchanged."""
+    m = np.asarray(mask, dtype=bool)
+    extra = int(n_actions) - m.shape[-1]
+    if extra <= 0:
+        return m
+    return np.concatenate([m, np.ones((*m.shape[:-1], extra), dtype=bool)], axis=-1)
 
 
 def replace_unsafe(action: int, mask: np.ndarray | None) -> tuple[int, bool]:

@@ -62,6 +62,8 @@ class CommandFilter:
     max_states: int = 16
     #: seconds a lane change may wait for its state before it becomes keep lane (``no_state``)
     max_command_wait: float = 0.25
+    #: the scenario's action count: actions 3 .. n_actions - 1 are speed actions, passed like keep lane
+    n_actions: int = N_ACTIONS
     counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(VERDICTS, 0))
     interventions: int = 0
     _states: OrderedDict[int, tuple[np.ndarray | None, float]] = field(default_factory=OrderedDict)
@@ -115,10 +117,10 @@ class CommandFilter:
         return d
 
     def _verdict(self, stamp: int, action: int, now: float) -> str:
-        if not isinstance(action, (int, np.integer)) or not 0 <= int(action) < N_ACTIONS:
+        if not isinstance(action, (int, np.integer)) or not 0 <= int(action) < max(self.n_actions, N_ACTIONS):
             return "malformed"
-        if int(action) == KEEP:
-            return "pass"  # keep lane needs no state
+        if int(action) == KEEP or int(action) >= N_ACTIONS:
+            return "pass"  # keep lane and the speed actions need no state (SUMO's car-following keeps them safe)
         entry = self._states.get(stamp)
         if entry is None:
             return "no_state"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from der_ros.safety.apply import with_speed_actions
 from der_ros.safety.checker import N_ACTIONS
 from der_ros.safety.config import SafetyConfig
 from sumo_bridge.observation import EGO_FEATURES, SLOT_FEATURES, SLOT_NAMES, ObservationConfig
@@ -41,10 +42,11 @@ def _rss(v_rear: np.ndarray, v_front: np.ndarray, cfg: SafetyConfig, brake_min: 
 
 
 class ObservationMask:
-    """``mask(obs_batch)`` -> bool array ``(batch, 3)``: True where an action is safe."""
+    """``mask(obs_batch)`` -> bool array ``(batch, n_actions)``: True where an action is safe (the speed
+    actions of a five-action scenario always, :func:`der_ros.safety.apply.with_speed_actions`)."""
 
-    def __init__(self, cfg: SafetyConfig, obs_cfg: ObservationConfig) -> None:
-        self.cfg, self.obs_cfg = cfg, obs_cfg
+    def __init__(self, cfg: SafetyConfig, obs_cfg: ObservationConfig, n_actions: int = N_ACTIONS) -> None:
+        self.cfg, self.obs_cfg, self.n_actions = cfg, obs_cfg, int(n_actions)
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         x = np.asarray(obs, dtype=np.float64)
@@ -72,4 +74,4 @@ class ObservationMask:
                 forced = np.where(to_diverge > 0, v_ego * v_ego / (2.0 * np.maximum(to_diverge, 1e-9)), 0.0)
                 ok &= toward | (forced <= self.cfg.brake_max)
             out[:, action] = ok
-        return out
+        return with_speed_actions(out, self.n_actions)

@@ -5,7 +5,7 @@ points of the last ``reset``/``step``) and, in both modes, replaces an unsafe on
 (replace mode relies on this; in mask mode the agent already chose an allowed action, so the
 wrapper only guards). It adds to ``info``:
 
-* ``action_mask`` -- the safe actions in the *returned* state (bool, keep/left/right): what the
+* ``action_mask`` -- the safe actions in the *returned* state (bool, keep/left/right, and the speed actions, always allowed): what the
   next command is checked against, and what a mask-mode agent chooses from;
 * ``proposed_action``, ``applied_action``, ``intervened`` -- this step's command, what was applied
   and whether the shield changed it (``step`` only);
@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 
 from der_ros.configuration import ConfigError
-from der_ros.safety.apply import replace_unsafe
+from der_ros.safety.apply import replace_unsafe, with_speed_actions
 from der_ros.safety.checker import RssChecker
 from der_ros.safety.config import SafetyConfig, fleet_cautious
 from der_ros.safety.observation_mask import ObservationMask
@@ -65,6 +65,8 @@ class ShieldWrapper(gym.Wrapper):
         rng = scenario.observation.neighbour_range if scenario is not None else None
         self._rss = (RssChecker(self.cfg) if rng is None else RssChecker(self.cfg, rng)) if cfg.kind == "rss" else None
         self._mask: np.ndarray | None = None
+        #: the env's actions: the speed actions beyond keep/left/right are allowed (with_speed_actions)
+        self._n_actions = int(getattr(env.action_space, "n", 3))
         self.interventions = 0
 
     def verdict(self, info: dict[str, Any]) -> np.ndarray:
@@ -74,9 +76,9 @@ class ShieldWrapper(gym.Wrapper):
             raise ConfigError(f"safety.kind = {self.cfg.kind!r} needs a lane-change env (info['points']); "
                               f"{self.env.spec.id if self.env.spec else self.env!r} has none")  # fmt: skip
         if self._rss is not None:
-            return self._rss.mask(points)
+            return with_speed_actions(self._rss.mask(points), self._n_actions)
         inner = self.env.unwrapped
-        return sumo_mask(inner.api, inner.ego_id, points)
+        return with_speed_actions(sumo_mask(inner.api, inner.ego_id, points), self._n_actions)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
@@ -121,4 +123,4 @@ def target_mask_for(env_cfg: Any) -> ObservationMask | None:
     if network is None:
         raise ConfigError(f"env.safety.kind = 'rss' needs a lane-change env id {tuple(ENV_NETWORKS)}, got {env_cfg.id!r}")
     scenario = scenario_from_kwargs(network, dict(env_cfg.kwargs).get("scenario"))
-    return ObservationMask(scenario_shield(cfg, scenario), scenario.observation)
+    return ObservationMask(scenario_shield(cfg, scenario), scenario.observation, len(scenario.actions))

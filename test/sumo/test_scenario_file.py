@@ -257,4 +257,5 @@ def test_der_graph_scenario_path_sets_the_bridge_and_agent_parameters(tmp_path: 
     base = {"safety_node": {"ros__parameters": {"safety": {"brake_min": 4.5, "unobserved_speed": 20.0}}}}
     shield = build_graph_params(base, steps=100, scenario="exit", run_dir=tmp_path)["safety_node"]["ros__parameters"]
     assert (shield["safety.brake_min"], shield["safety.unobserved_speed"]) == (4.5, 25.0)
+    assert shield["n_actions"] == 5  # exit's speed actions pass the safety node like keep lane
     assert "safety.unobserved_speed" not in params["safety_node"]["ros__parameters"]  # tiny has no section
