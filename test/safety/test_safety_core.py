@@ -6,29 +6,16 @@ import math
 
 import numpy as np
 import pytest
+from safety_points import COL, ROW, situation
 
 from der_ros.configuration import ConfigError, from_dict
 from der_ros.safety import KEEP, RssChecker, SafetyConfig, masked_argmax, replace_unsafe, safe_longitudinal_distance
 from der_ros.safety.observation_mask import ObservationMask
 from der_ros.safety.sumo_check import LCA_OVERLAPPING, sumo_mask
-from sumo_bridge.observation import ObservationConfig, empty_points, encode_observation, field_index
+from sumo_bridge.observation import ObservationConfig, encode_observation
 
-COL = {n: field_index(n) for n in ("speed", "rel_speed", "gap", "lane", "target_lane", "present", "lane_count")}
-ROW = {"left_leader": 3, "left_follower": 4, "right_leader": 5, "right_follower": 6}
 CFG = SafetyConfig(kind="rss", response_time=0.5, accel_max=2.0, brake_min=4.0, brake_max=6.0)
 
-
-def situation(ego_speed: float = 15.0, lane: int = 0, lanes: int = 2, **slots: tuple[float, float]) -> np.ndarray:
-    """Points with the ego at ``ego_speed`` on ``lane``; ``slot=(gap, rel_speed)`` fills a neighbour slot."""
-    pts = empty_points()
-    pts[0, COL["speed"]], pts[0, COL["lane"]], pts[0, COL["lane_count"]] = ego_speed, lane, lanes
-    pts[0, COL["target_lane"]] = 1
-    for name, (gap, rel) in slots.items():
-        row = pts[ROW[name]]
-        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
-        row[COL["speed"]] = ego_speed + rel
-        row[COL["lane"]] = lane + (1 if name.startswith("left") else -1)
-    return pts
 
 
 def test_formula_textbook_values() -> None:

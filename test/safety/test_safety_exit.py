@@ -7,16 +7,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+from safety_points import ROW
+from safety_points import situation as points
 
 from der_ros.safety import RssChecker, SafetyConfig
 from der_ros.safety.config import FLEET_FIELDS, fleet_cautious
 from der_ros.safety.observation_mask import ObservationMask
 from der_ros.safety.wrapper import scenario_shield
-from sumo_bridge.observation import ObservationConfig, empty_points, encode_observation, field_index
+from sumo_bridge.observation import ObservationConfig, encode_observation
 from sumo_bridge.scenario_file import SAFETY_KEYS, load_scenario_config
 
-COL = {n: field_index(n) for n in ("speed", "rel_speed", "gap", "lane", "target_lane", "present", "lane_count")}
-ROW = {"left_leader": 3, "left_follower": 4, "right_leader": 5, "right_follower": 6}
 OLD = SafetyConfig(kind="rss")  # the shipped defaults: what the exit table's shielded rows were trained behind
 
 
@@ -27,15 +27,7 @@ def exit_shield() -> SafetyConfig:
 def situation(ego_speed: float, lane: int, lanes: int = 4, to_diverge: float = 0.0,
               **slots: tuple[float, float]) -> np.ndarray:
     """Points of the exit: target lane 0; ``to_diverge`` the ego row's gap (metres to the split)."""
-    pts = empty_points()
-    pts[0, COL["speed"]], pts[0, COL["lane"]], pts[0, COL["lane_count"]] = ego_speed, lane, lanes
-    pts[0, COL["gap"]], pts[0, COL["target_lane"]] = to_diverge, 0
-    for name, (gap, rel) in slots.items():
-        row = pts[ROW[name]]
-        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
-        row[COL["speed"]] = ego_speed + rel
-        row[COL["lane"]] = lane + (1 if name.startswith("left") else -1)
-    return pts
+    return points(ego_speed, lane, lanes, to_diverge, target_lane=0, **slots)
 
 
 def test_the_ring_and_urban_keep_their_shield_exactly() -> None:

@@ -1,0 +1,25 @@
+"""Hand-built neighbour points (``info['points']``) for the shield's tests (test/safety/)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sumo_bridge.observation import empty_points, field_index
+
+COL = {n: field_index(n) for n in ("speed", "rel_speed", "gap", "lane", "target_lane", "present", "lane_count")}
+ROW = {"left_leader": 3, "left_follower": 4, "right_leader": 5, "right_follower": 6}
+
+
+def situation(ego_speed: float = 15.0, lane: int = 0, lanes: int = 2, to_diverge: float = 0.0, target_lane: int = 1,
+              **slots: tuple[float, float]) -> np.ndarray:
+    """Points with the ego at ``ego_speed`` on ``lane`` of ``lanes``; ``to_diverge`` is the ego row's gap (metres
+    to a split, 0: none); ``slot=(gap, rel_speed)`` fills a neighbour slot."""
+    pts = empty_points()
+    pts[0, COL["speed"]], pts[0, COL["lane"]], pts[0, COL["lane_count"]] = ego_speed, lane, lanes
+    pts[0, COL["gap"]], pts[0, COL["target_lane"]] = to_diverge, target_lane
+    for name, (gap, rel) in slots.items():
+        row = pts[ROW[name]]
+        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
+        row[COL["speed"]] = ego_speed + rel
+        row[COL["lane"]] = lane + (1 if name.startswith("left") else -1)
+    return pts
