@@ -19,7 +19,11 @@ Runs, on the ring scenario with the agent/replay settings of ``config/graph.para
 ``--safety`` also runs the training graph (markers on) with the safety node between agent and
 bridge (``der graph --safety rss``, the default of ``der graph``), alternating with the graph
 without it in each pair: ``safety_*`` figures (steps/s, ratio to in-process, round trip, which then
-includes the safety node's hop) and ``safety_cost_pairs`` (1 - with/without, within each pair).
+includes the safety node's hop) and ``safety_cost_pairs`` (1 - with/without, within each pair). The RSS
+shield changes the episodes (a vetoed change is a keep, so episodes are longer and steps cheaper), so
+its steps/s are not the hop's cost; for that each pair also runs the safety node with
+``safety.kind: none`` (it passes every command, the agent's commands are the unshielded graph's):
+``safety_passthrough_*`` and ``safety_hop_cost_pairs`` (1 - pass-through/without).
 
 ``--record`` adds the recorder node (all default topics, so the markers too when they are on) to
 both training graphs: the cost of recording them as well (a third process on two cores).
@@ -173,7 +177,7 @@ def _param_args(params: dict) -> list[str]:
 
 
 def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, markers: bool = True,
-              record: bool = False, safety: bool = False) -> dict:  # fmt: skip
+              record: bool = False, safety: str | None = None) -> dict:  # fmt: skip
     """Start (recorder +) agent (+ safety node) + bridge, wait for the bridge to finish, return its summary."""
     from der_ros.graph.graph_cli import AGENT_REMAP
     from der_ros.graph.supervisor import reserve_domain_id
@@ -184,7 +188,7 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, 
     agent_params = {**agent_overrides, "evaluate": evaluate, "checkpoint_out": str(workdir / "agent.pt")}
     procs = []
     tag = ("_eval" if evaluate else "") + ("" if markers else "_no_markers") + ("_record" if record else "")
-    tag += "_safety" if safety else ""
+    tag += f"_safety_{safety}" if safety else ""
     try:
         agent_log = open(workdir / f"agent{tag}.log", "wb")  # noqa: SIM115
         bridge_log_path = workdir / f"bridge{tag}.log"
@@ -203,7 +207,8 @@ def run_graph(steps: int, agent_overrides: dict, evaluate: bool, workdir: Path, 
                                       env=env, stdout=agent_log, stderr=subprocess.STDOUT, start_new_session=True))
         if safety:
             safety_log = open(workdir / f"safety{tag}.log", "wb")  # noqa: SIM115
-            procs.append(subprocess.Popen(base + ["der_ros.nodes.safety_node"] + ros, env=env, stdout=safety_log,
+            procs.append(subprocess.Popen(base + ["der_ros.nodes.safety_node"] + ros + _param_args({"safety.kind": safety}),
+                                          env=env, stdout=safety_log,
                                           stderr=subprocess.STDOUT, start_new_session=True))  # fmt: skip
         bridge = subprocess.Popen(
             base + ["der_ros.nodes.bridge_node"] + ros + _param_args(bridge_params),
@@ -250,7 +255,7 @@ def main() -> int:
     workdir = Path(tempfile.mkdtemp(prefix="der_bench_graph_"))
     scene = scene_cost(400 if args.quick else 1000)
     print(f"scene markers in one process (ring): {json.dumps(scene)}", file=sys.stderr)
-    plains, graphs, inprocs, shielded, unshielded = [], [], [], [], []
+    plains, graphs, inprocs, shielded, unshielded, passthrough = [], [], [], [], [], []
     inproc_episodes = 0
     for pair in range(max(1, args.pairs)):
         pair_dir = workdir / f"pair{pair}"
@@ -264,13 +269,12 @@ def main() -> int:
             run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, markers=markers, record=args.record)
             (graphs if markers else plains).append(run)
             print(f"graph (training, markers {'on' if markers else 'off'}): {json.dumps(run)}", file=sys.stderr)
-        if args.safety:  # with and without the safety node, ABBA as well; markers on (der graph's default)
-            for with_safety in (True, False) if pair % 2 == 0 else (False, True):
-                run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, record=args.record,
-                                safety=with_safety)  # fmt: skip
-                (shielded if with_safety else unshielded).append(run)
-                print(f"graph (training, safety node {'on' if with_safety else 'off'}): {json.dumps(run)}",
-                      file=sys.stderr)  # fmt: skip
+        if args.safety:  # without, with a pass-through and with the RSS safety node; order rotates per pair
+            kinds: list[str | None] = [None, "none", "rss"]
+            for kind in kinds[pair % 3:] + kinds[:pair % 3]:
+                run = run_graph(steps, overrides, evaluate=False, workdir=pair_dir, record=args.record, safety=kind)
+                {None: unshielded, "none": passthrough, "rss": shielded}[kind].append(run)
+                print(f"graph (training, safety node {kind or 'off'}): {json.dumps(run)}", file=sys.stderr)
     plain, graph = _median_run(plains), _median_run(graphs)
     inproc = sorted(inprocs)[len(inprocs) // 2]
     graph_eval = run_graph(steps, overrides, evaluate=True, workdir=workdir)
@@ -319,6 +323,15 @@ def main() -> int:
             "safety_off_roundtrip_p50_ms": round(_median_run(unshielded)["roundtrip_p50_ms"], 3),
             "safety_cost_pairs": [round(1.0 - on["steps_per_s"] / off["steps_per_s"], 3)
                                   for on, off in zip(shielded, unshielded)],
+            "safety_episodes": int(safe["episodes_started"]),
+            "safety_off_episodes": int(_median_run(unshielded)["episodes_started"]),
+            "safety_off_graph_steps_per_s": round(_median_run(unshielded)["steps_per_s"], 1),
+            "safety_passthrough_graph_steps_per_s": round(_median_run(passthrough)["steps_per_s"], 1),
+            "safety_passthrough_episodes": int(_median_run(passthrough)["episodes_started"]),
+            "safety_passthrough_roundtrip_p50_ms": round(_median_run(passthrough)["roundtrip_p50_ms"], 3),
+            "safety_passthrough_roundtrip_p99_ms": round(_median_run(passthrough)["roundtrip_p99_ms"], 3),
+            "safety_hop_cost_pairs": [round(1.0 - on["steps_per_s"] / off["steps_per_s"], 3)
+                                      for on, off in zip(passthrough, unshielded)],
         })  # fmt: skip
     print(json.dumps(result))
     return 0

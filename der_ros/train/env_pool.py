@@ -128,7 +128,7 @@ class EnvPool:
         while not w.results:
             self._launch_ready(agent)
             self._receive(w, agent)
-        self._launch_ready(agent)
+        self._collect_done(agent)
         return w.results.popleft()
 
     def learnt_one(self, agent: Any) -> None:
@@ -139,6 +139,16 @@ class EnvPool:
             needed = self._round_for(min(w.launched for w in self.workers))  # the oldest a next action uses
             for old in [k for k in self._snapshots if k < needed]:
                 del self._snapshots[old]
+        self._collect_done(agent)
+
+    def _collect_done(self, agent: Any) -> None:
+        """Take every step that has finished (without waiting) and start the next ones: called around the
+        caller's gradient step, so a worker whose step came in meanwhile does not idle until the learner
+        next has to wait for a step."""
+        flying = {w.proc.connection: w for w in self.workers if w.inflight is not None}
+        if flying:
+            for conn in wait(list(flying), timeout=0):
+                self._collect(flying[conn])
         self._launch_ready(agent)
 
     def _launch_ready(self, agent: Any) -> None:
