@@ -1,4 +1,4 @@
-"""A greedy episode of a trained exit agent as a GIF (and a still), behind the RSS shield as in the graph.
+"""A greedy episode of a trained exit agent as a GIF (and a still), behind its own RSS shield.
 
     python research/exit/film.py RUN_DIR OUT.gif [--seed-offset K] [--still OUT.png]
 
@@ -21,8 +21,10 @@ from der_ros.agent.dqn import DQNAgent
 from der_ros.graph.greedy_episode import watchable_env_config
 from der_ros.offline.episode_recording import record_episode
 from der_ros.offline.render import RenderOptions, render_bag
+from der_ros.safety.apply import masked_argmax, with_speed_actions
 from der_ros.safety.checker import RssChecker
 from der_ros.safety.config import SafetyConfig
+from der_ros.safety.wrapper import scenario_shield, target_mask_for
 from der_ros.train.config import load_experiment_config
 from der_ros.train.envs import make_env_from_config
 from der_ros.train.eval_policies import GreedyQPolicy
@@ -43,10 +45,23 @@ def main() -> None:
     policy = GreedyQPolicy(agent.q_net, np.float32)
     seed = EVAL_SEED_BASE + args.seed_offset
     env = make_env_from_config(watchable_env_config(cfg.env), seed)
-    shield = None if args.no_shield else RssChecker(SafetyConfig(kind="rss")).mask
+    # the run's own shield (as trained and evaluated: its parameters made at least as cautious as the
+    # scenario's fleet, mask or replace); a run trained without one: the default RSS shield, replace
+    run_shield = cfg.env.safety if cfg.env.safety.enabled else SafetyConfig(kind="rss")
+    shield_cfg = scenario_shield(run_shield, getattr(env.unwrapped, "config", None))
+    n_actions = int(env.action_space.n)
+    check = RssChecker(shield_cfg)
+    shield = None if args.no_shield else (lambda points: with_speed_actions(check.mask(points), n_actions))
+    obs_mask = target_mask_for(cfg.env) if shield is not None else None  # mask mode: the same verdict from obs
+
+    def act(obs: np.ndarray) -> int:
+        if obs_mask is not None:  # the best allowed action, as the table's evaluation chooses it
+            return masked_argmax(agent.q_values(obs), obs_mask(np.asarray(obs)[None])[0])
+        return int(policy(obs[None], [{}])[0])
+
     bag = args.out.with_suffix(".bag")
     try:
-        rec = record_episode(env.unwrapped, lambda obs: int(policy(obs[None], [{}])[0]), bag, seed=seed, shield=shield)
+        rec = record_episode(env.unwrapped, act, bag, seed=seed, shield=shield)
     finally:
         env.close()
     res = render_bag(bag, args.out, opts=RenderOptions(width=640, height=320, caption_height=64, follow_window=160.0))
