@@ -76,7 +76,7 @@ class ShieldWrapper(gym.Wrapper):
             raise ConfigError(f"safety.kind = {self.cfg.kind!r} needs a lane-change env (info['points']); "
                               f"{self.env.spec.id if self.env.spec else self.env!r} has none")  # fmt: skip
         if self._rss is not None:
-            return with_speed_actions(self._rss.mask(points), self._n_actions)
+            return with_speed_actions(self._rss.mask(points, info.get("beyond_points")), self._n_actions)
         inner = self.env.unwrapped
         return with_speed_actions(sumo_mask(inner.api, inner.ego_id, points), self._n_actions)
 
