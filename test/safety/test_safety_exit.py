@@ -1,9 +1,11 @@
-"""The shield on the exit scenario's fleet (docs/safety.md, "The exit scenario"): the unseen follower and
-the trucks' braking, on situations taken from the diagnosed collisions; the ring's shield unchanged."""
+"""The shield on the exit scenario's fleet (docs/safety.md, "The exit scenario"): the unseen follower, the
+trucks' braking and the car two lanes away (beyond_lane), on situations taken from the diagnosed collisions;
+the ring's shield unchanged."""
 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,6 +120,42 @@ def test_malformed_beyond_points_allow_keep_only() -> None:
     bad = beyond(16.6, 3, right2_leader=(float("nan"), -3.9))
     assert not RssChecker(exit_shield()).mask(pts, bad)[2]
     assert RssChecker(exit_shield()).mask(pts, np.zeros((3, 12))).tolist() == [True, False, False]
+
+
+def test_the_exit_env_reports_the_cars_two_lanes_away_and_the_shield_uses_them() -> None:
+    """Tuning episode 1500000118 in SUMO, the change-now driver behind the exit shield: the env's beyond points hold
+    cars two lanes to either side (within the range, present rows only on lanes that exist); at some decision
+    a change the old verdict allowed is refused for a car there alone, and the episode has no caused collision
+    (without beyond_lane it ends in the side collision at decision 21)."""
+    from der_ros.train.config import load_experiment_config
+    from der_ros.train.envs import make_env_from_config
+    from sumo_bridge.observation import BEYOND_NAMES, field_index
+    from sumo_bridge.policies import immediate_policy
+
+    present, lane, gap = field_index("present"), field_index("lane"), field_index("gap")
+    cfg = load_experiment_config(Path(__file__).resolve().parents[2] / "config" / "exit.yaml")
+    env = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss")), 1_500_000_000)
+    no_beyond = RssChecker(dataclasses.replace(exit_shield(), beyond_lane=False))
+    try:
+        _obs, info = env.reset(seed=1_500_000_118)
+        refused_for_beyond = seen = 0
+        done, caused = False, False
+        while not done:
+            pts, far = info["points"], info["beyond_points"]
+            assert far.shape == (len(BEYOND_NAMES), pts.shape[1])
+            for i, name in enumerate(BEYOND_NAMES):
+                if far[i, present] > 0.5:
+                    seen += 1
+                    assert far[i, lane] == pts[0, lane] + (2 if name.startswith("left") else -2)
+                    assert far[i, gap] <= 30.0
+            mask = info["action_mask"]
+            refused_for_beyond += sum(bool(no_beyond.mask(pts)[a]) and not mask[a] for a in (1, 2))
+            _obs, _r, term, trunc, info = env.step(immediate_policy(pts))
+            done, caused = term or trunc, caused or bool(info.get("caused"))
+    finally:
+        env.close()
+    assert seen > 0 and refused_for_beyond > 0
+    assert not caused
 
 
 def test_fleet_takes_the_more_cautious_value_and_never_loosens() -> None:
