@@ -219,8 +219,10 @@ _V_POS, _V_ANGLE, _V_LENGTH = _tc.VAR_POSITION, _tc.VAR_ANGLE, _tc.VAR_LENGTH
 _V_DEPARTED, _V_COLLIDING = _tc.VAR_DEPARTED_VEHICLES_IDS, _tc.VAR_COLLIDING_VEHICLES_NUMBER
 _SPEED_ONLY = [_V_SPEED]
 _GET_SPEED = operator.itemgetter(_V_SPEED)
-#: lanes of the ego's context subscription, relative to its own: the neighbour slots' and the beyond points'
-_CTX_LANES = [-2, -1, 0, 1, 2]
+#: lanes of the ego's context subscription, relative to its own: the neighbour slots'; with the beyond points
+#: (a shield with ``beyond_lane`` asks for them, :meth:`LaneChangeEnv.watch_beyond_lanes`) two lanes out
+_CTX_LANES = [-1, 0, 1]
+_CTX_LANES_BEYOND = [-2, -1, 0, 1, 2]
 _CTX_VARS = [_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD, _V_POS, _V_ANGLE, _V_LENGTH]
 # _points_from_context writes rows in this order
 assert POINT_FIELDS == ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot",
@@ -284,6 +286,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._commit = cfg.commit_on_success  # success runs the rest of the horizon in its transition
         self._points = empty_points()
         self._beyond_points = empty_beyond_points()  # lanes +-2 (observation.BEYOND_NAMES): for the shield only
+        self._ctx_lanes = _CTX_LANES  # _CTX_LANES_BEYOND once watch_beyond_lanes() was called
         self._obs = encode_observation(self._points, cfg.observation)
         self._ego_lane = 0  # lane index and lane count of the ego in the last points
         self._ego_lane_count = 0
@@ -463,7 +466,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             _CTX_VARS,
         )
         api.vehicle.addSubscriptionFilterLanes(
-            _CTX_LANES, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+            self._ctx_lanes, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
         )
         self._sim_step()  # fill the subscription (and let the ego settle one step)
         self._ego_present = True
@@ -653,7 +656,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         if context:
             vehicle.subscribeContext(self.ego_id, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range, _CTX_VARS)
             vehicle.addSubscriptionFilterLanes(
-                _CTX_LANES, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+                self._ctx_lanes, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
             )
         if not (speeds or context):
             return
@@ -941,6 +944,12 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         }
 
     # ------------------------------------------------------------------ lifecycle
+    def watch_beyond_lanes(self) -> None:
+        """Also read the lanes two to either side (``info["beyond_points"]``, for a shield with ``beyond_lane``)
+        from the next reset on. Off by default: a wider context subscription is more vehicles per step, and
+        nothing else reads them (the points and the observation are the same either way)."""
+        self._ctx_lanes = _CTX_LANES_BEYOND
+
     def close(self) -> None:
         if self._sim is not None:
             self._sim.close()

@@ -22,8 +22,10 @@ from sumo_bridge.scenario_file import SAFETY_KEYS, load_scenario_config
 OLD = SafetyConfig(kind="rss")  # the shipped defaults: what the exit table's shielded rows were trained behind
 
 
-def exit_shield() -> SafetyConfig:
-    return scenario_shield(OLD, load_scenario_config("exit"))
+def exit_shield(beyond_lane: bool = True) -> SafetyConfig:
+    """The exit's shield (its fleet's safety section), with the beyond-lane check on unless told otherwise
+    (it is an option: off in the shipped exit.yaml, docs/safety.md)."""
+    return dataclasses.replace(scenario_shield(OLD, load_scenario_config("exit")), beyond_lane=beyond_lane)
 
 
 def situation(ego_speed: float, lane: int, lanes: int = 4, to_diverge: float = 0.0,
@@ -39,9 +41,9 @@ def test_the_ring_and_urban_keep_their_shield_exactly() -> None:
 
 
 def test_exit_states_its_fleet() -> None:
-    cfg = exit_shield()
+    cfg = scenario_shield(OLD, load_scenario_config("exit"))
     assert (cfg.brake_min, cfg.unobserved_speed, cfg.unobserved_brake, cfg.lane_end, cfg.beyond_lane) == (
-        9.0, 25.0, 9.0, True, True)
+        9.0, 25.0, 9.0, True, False)  # beyond_lane: an option, off as shipped
     assert (cfg.response_time, cfg.accel_max, cfg.brake_max) == (OLD.response_time, OLD.accel_max, OLD.brake_max)
 
 
@@ -134,8 +136,9 @@ def test_the_exit_env_reports_the_cars_two_lanes_away_and_the_shield_uses_them()
 
     present, lane, gap = field_index("present"), field_index("lane"), field_index("gap")
     cfg = load_experiment_config(Path(__file__).resolve().parents[2] / "config" / "exit.yaml")
-    env = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss")), 1_500_000_000)
-    no_beyond = RssChecker(dataclasses.replace(exit_shield(), beyond_lane=False))
+    env = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss", beyond_lane=True)),
+                               1_500_000_000)  # fmt: skip
+    no_beyond = RssChecker(exit_shield(beyond_lane=False))
     try:
         _obs, info = env.reset(seed=1_500_000_118)
         refused_for_beyond = seen = 0
@@ -156,6 +159,18 @@ def test_the_exit_env_reports_the_cars_two_lanes_away_and_the_shield_uses_them()
         env.close()
     assert seen > 0 and refused_for_beyond > 0
     assert not caused
+
+    # without the option the env does not read the lanes two out (its context subscription stays at +-1)
+    plain = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss")), 1_500_000_000)
+    try:
+        _obs, info = plain.reset(seed=1_500_000_118)
+        for _ in range(15):
+            assert not (info["beyond_points"][:, present] > 0.5).any()
+            _obs, _r, term, trunc, info = plain.step(0)
+            if term or trunc:
+                break
+    finally:
+        plain.close()
 
 
 def test_fleet_takes_the_more_cautious_value_and_never_loosens() -> None:

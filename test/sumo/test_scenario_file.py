@@ -129,7 +129,7 @@ def test_safety_section_is_read_and_optional(tmp_path: Path) -> None:
     assert load_scenario(path).safety == {"brake_min": 7.0, "unobserved_speed": 30.5}
     assert load_scenario(TINY / "tiny.yaml").safety == {}
     assert load_scenario(shipped_scenario("ring")).safety == {} == load_scenario(shipped_scenario("urban")).safety
-    assert load_scenario(shipped_scenario("exit")).safety == {"unobserved_speed": 25.0, "lane_end": True, "beyond_lane": True}
+    assert load_scenario(shipped_scenario("exit")).safety == {"unobserved_speed": 25.0, "lane_end": True}
 
 
 def test_der_train_with_a_bad_scenario_file_fails_before_sumo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
