@@ -31,7 +31,8 @@ Observation
 -----------
 ``observation.encode_observation(info["points"], config.observation)``; see
 :mod:`sumo_bridge.observation` for the point layout (ego + leader/follower on the current, left
-and right lanes within 30 m, with present flags) and the normalisation.
+and right lanes within 30 m, with present flags) and the normalisation. ``info["beyond_points"]`` holds the
+nearest vehicles two lanes to either side (``observation.BEYOND_NAMES``), for the RSS shield only.
 
 Reward (section 5.1)
 --------------------
@@ -183,6 +184,8 @@ from sumo_bridge.builtin_setup import RING_EDGES, URBAN_CORRIDOR, RingSetupMixin
 from sumo_bridge.flow_scenario import FlowScenarioMixin
 from sumo_bridge.network_build import BuiltNetwork, build_network, build_scenario_network
 from sumo_bridge.observation import (
+    BEYOND_NAMES,
+    empty_beyond_points,
     POINT_FIELDS,
     SLOT_NAMES,
     empty_points,
@@ -216,6 +219,10 @@ _V_POS, _V_ANGLE, _V_LENGTH = _tc.VAR_POSITION, _tc.VAR_ANGLE, _tc.VAR_LENGTH
 _V_DEPARTED, _V_COLLIDING = _tc.VAR_DEPARTED_VEHICLES_IDS, _tc.VAR_COLLIDING_VEHICLES_NUMBER
 _SPEED_ONLY = [_V_SPEED]
 _GET_SPEED = operator.itemgetter(_V_SPEED)
+#: lanes of the ego's context subscription, relative to its own: the neighbour slots'; with the beyond points
+#: (a shield with ``beyond_lane`` asks for them, :meth:`LaneChangeEnv.watch_beyond_lanes`) two lanes out
+_CTX_LANES = [-1, 0, 1]
+_CTX_LANES_BEYOND = [-2, -1, 0, 1, 2]
 _CTX_VARS = [_V_SPEED, _V_LANE, _V_LANEPOS, _V_ROAD, _V_POS, _V_ANGLE, _V_LENGTH]
 # _points_from_context writes rows in this order
 assert POINT_FIELDS == ("x", "y", "z", "speed", "rel_speed", "gap", "lane", "target_lane", "present", "slot",
@@ -278,6 +285,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._hold_target = not cfg.lane_changes_after_success  # commands are no-ops once the target is reached
         self._commit = cfg.commit_on_success  # success runs the rest of the horizon in its transition
         self._points = empty_points()
+        self._beyond_points = empty_beyond_points()  # lanes +-2 (observation.BEYOND_NAMES): for the shield only
+        self._ctx_lanes = _CTX_LANES  # _CTX_LANES_BEYOND once watch_beyond_lanes() was called
         self._obs = encode_observation(self._points, cfg.observation)
         self._ego_lane = 0  # lane index and lane count of the ego in the last points
         self._ego_lane_count = 0
@@ -457,7 +466,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             _CTX_VARS,
         )
         api.vehicle.addSubscriptionFilterLanes(
-            [-1, 0, 1], noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+            self._ctx_lanes, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
         )
         self._sim_step()  # fill the subscription (and let the ego settle one step)
         self._ego_present = True
@@ -647,7 +656,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         if context:
             vehicle.subscribeContext(self.ego_id, self._tc.CMD_GET_VEHICLE_VARIABLE, self._ctx_range, _CTX_VARS)
             vehicle.addSubscriptionFilterLanes(
-                [-1, 0, 1], noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
+                self._ctx_lanes, noOpposite=True, downstreamDist=self._ctx_range, upstreamDist=self._ctx_range
             )
         if not (speeds or context):
             return
@@ -804,7 +813,8 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         closed, lap = self._closed_corridor, self._loop_length
         half = 0.5 * lap
         has_left, has_right = ego_lane + 1 < n_lanes, ego_lane > 0
-        best: list[tuple[float, str, dict[int, Any]] | None] = [None] * len(SLOT_NAMES)
+        # the slots, then the beyond points (two lanes away): indices 6.. of ``best``
+        best: list[tuple[float, str, dict[int, Any]] | None] = [None] * (len(SLOT_NAMES) + len(BEYOND_NAMES))
         for vid, var in ctx.items():
             offset = var[_V_LANE] - ego_lane
             if offset == 0:
@@ -819,6 +829,14 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
                 if not has_right:
                     continue
                 lead = 4
+            elif offset == 2:
+                if ego_lane + 2 >= n_lanes:
+                    continue
+                lead = 6
+            elif offset == -2:
+                if ego_lane < 2:
+                    continue
+                lead = 8
             else:
                 continue
             # signed front-to-front distance along the road (positive: ahead of the ego)
@@ -855,7 +873,10 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             speed = var[_V_SPEED]
             rows.append([dx * fx + dy * fy, -dx * fy + dy * fx, 0.0, speed, speed - ego_speed, gap, var[_V_LANE],
                          -1.0, 1.0, slot + 1.0, self._lane_count(var[_V_ROAD]), var[_V_LENGTH]])  # fmt: skip
-        self._slots = best
+        n_slots = 1 + len(SLOT_NAMES)
+        self._beyond_points = np.array(rows[n_slots:], dtype=np.float64)
+        del rows[n_slots:]
+        self._slots = best[: len(SLOT_NAMES)]
         self._ego_lane, self._ego_lane_count = int(ego_lane), n_lanes
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
         self._ego_road_pos_speed = (ego_road, float(ego_pos), float(ego_speed))
@@ -907,6 +928,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         x, y, angle = self._ego_xy_angle
         return {
             "points": self._points.copy(),
+            "beyond_points": self._beyond_points.copy(),
             "event": event,
             "mean_speed": mean_speed,
             "episode_step": self._episode_step,
@@ -922,6 +944,12 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         }
 
     # ------------------------------------------------------------------ lifecycle
+    def watch_beyond_lanes(self) -> None:
+        """Also read the lanes two to either side (``info["beyond_points"]``, for a shield with ``beyond_lane``)
+        from the next reset on. Off by default: a wider context subscription is more vehicles per step, and
+        nothing else reads them (the points and the observation are the same either way)."""
+        self._ctx_lanes = _CTX_LANES_BEYOND
+
     def close(self) -> None:
         if self._sim is not None:
             self._sim.close()

@@ -66,6 +66,14 @@ with the deceleration block:
   Scenario files with a goal edge (an exit) put the distance from the ego to the diverge there (the
   ego row's gap is 0 otherwise): without it the urgency of the exit is not observable.
 
+Beyond points (``info["beyond_points"]``, in process only: not in the ``state`` message)
+--------------------------------------------------------------------------------------
+A float64 array of shape ``(len(BEYOND_NAMES), len(POINT_FIELDS))``, rows as the neighbour rows
+above (``slot`` = ``1 + len(SLOT_NAMES) + i``): the nearest vehicle ahead / behind on the lane *two*
+to the left and two to the right, within the neighbour range. Such a car may change into the lane
+between it and the ego in the same step as the ego (docs/safety.md, "The exit scenario", cause C);
+the RSS shield's ``beyond_lane`` check reads it. The observation vector does not encode it.
+
 The present flag keeps "empty" distinguishable from "a vehicle exactly at the range". The second,
 short-range gap channel gives the network resolution where a lane change is decided: whether the
 target-lane follower overlaps the ego by half a metre (a collision) or leaves a metre free (safe)
@@ -105,11 +113,13 @@ from der_ros.configuration import ConfigError, param
 __all__ = [
     "POINT_FIELDS",
     "SLOT_NAMES",
+    "BEYOND_NAMES",
     "EGO_FEATURES",
     "SLOT_FEATURES",
     "ObservationConfig",
     "field_index",
     "empty_points",
+    "empty_beyond_points",
     "encode_observation",
     "encode_point_rows",
     "observation_size",
@@ -141,6 +151,9 @@ SLOT_NAMES: tuple[str, ...] = (
     "right_leader",
     "right_follower",
 )
+
+#: Rows of ``info["beyond_points"]``: the nearest vehicles two lanes to the left and to the right, in order.
+BEYOND_NAMES: tuple[str, ...] = ("left2_leader", "left2_follower", "right2_leader", "right2_follower")
 
 #: Names of the ego part of the observation vector.
 EGO_FEATURES: tuple[str, ...] = ("speed", "lane", "target_direction", "has_left_lane", "has_right_lane")
@@ -216,6 +229,15 @@ def empty_points() -> np.ndarray:
     pts[1:, _COL["lane"]] = -1.0
     pts[1:, _COL["target_lane"]] = -1.0
     pts[0, _COL["present"]] = 1.0
+    return pts
+
+
+def empty_beyond_points() -> np.ndarray:
+    """Beyond points (``BEYOND_NAMES`` rows) with every slot empty."""
+    pts = np.zeros((len(BEYOND_NAMES), len(POINT_FIELDS)), dtype=np.float64)
+    pts[:, _COL["slot"]] = np.arange(1 + len(SLOT_NAMES), 1 + len(SLOT_NAMES) + len(BEYOND_NAMES), dtype=np.float64)
+    pts[:, _COL["lane"]] = -1.0
+    pts[:, _COL["target_lane"]] = -1.0
     return pts
 
 

@@ -75,7 +75,7 @@ _TOP_KEYS = ("name", "network", "demand", "ego", "goal", "horizon", "reward", "a
 SAFETY_KEYS: dict[str, tuple[float, bool]] = {"response_time": (0.0, True), "accel_max": (0.0, True),
                                               "brake_min": (0.0, False), "brake_max": (0.0, False),
                                               "unobserved_speed": (0.0, True), "unobserved_brake": (0.0, False),
-                                              "lane_end": (0.0, True)}  # fmt: skip  (lane_end: true / false)
+                                              "lane_end": (0.0, True), "beyond_lane": (0.0, True)}  # fmt: skip  (lane_end, beyond_lane: true / false)
 _REWARD_FIELDS = {"success": "reward_success", "collision": "reward_collision", "missed": "reward_missed",
                   "min_speed": "min_speed"}  # fmt: skip
 
@@ -372,9 +372,9 @@ def _safety(path: Path, data: Any) -> dict[str, Any]:
     """The ``safety:`` section: numbers within the RSS parameters' ranges, keyed by :data:`SAFETY_KEYS`."""
     out: dict[str, Any] = {}
     for k, v in _mapping(path, data, "safety", tuple(SAFETY_KEYS)).items():
-        if k == "lane_end":
+        if k in ("lane_end", "beyond_lane"):
             if not isinstance(v, bool):
-                raise _fail(path, "safety.lane_end", f"{v!r}, expected true or false")
+                raise _fail(path, f"safety.{k}", f"{v!r}, expected true or false")
             out[k] = v
             continue
         low, inclusive = SAFETY_KEYS[k]

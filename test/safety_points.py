@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sumo_bridge.observation import empty_points, field_index
+from sumo_bridge.observation import BEYOND_NAMES, empty_beyond_points, empty_points, field_index
 
 COL = {n: field_index(n) for n in ("speed", "rel_speed", "gap", "lane", "target_lane", "present", "lane_count")}
 ROW = {"left_leader": 3, "left_follower": 4, "right_leader": 5, "right_follower": 6}
@@ -22,4 +22,19 @@ def situation(ego_speed: float = 15.0, lane: int = 0, lanes: int = 2, to_diverge
         row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
         row[COL["speed"]] = ego_speed + rel
         row[COL["lane"]] = lane + (1 if name.startswith("left") else -1)
+    return pts
+
+
+BEYOND_ROW = {name: i for i, name in enumerate(BEYOND_NAMES)}
+
+
+def beyond(ego_speed: float = 15.0, lane: int = 0, **slots: tuple[float, float]) -> np.ndarray:
+    """Beyond points (the cars two lanes away, ``info['beyond_points']``) around an ego at ``ego_speed`` on ``lane``;
+    ``slot=(gap, rel_speed)`` fills one of ``left2_leader, left2_follower, right2_leader, right2_follower``."""
+    pts = empty_beyond_points()
+    for name, (gap, rel) in slots.items():
+        row = pts[BEYOND_ROW[name]]
+        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
+        row[COL["speed"]] = ego_speed + rel
+        row[COL["lane"]] = lane + (2 if name.startswith("left") else -2)
     return pts

@@ -308,7 +308,7 @@ class BaselineJob:
         if self.env_cfg.safety.enabled:  # (absent without a shield: earlier caches stay valid)
             shield, default = to_dict(shield_in_force(self.env_cfg)), to_dict(SafetyConfig())  # with the scenario's fleet
             out["safety"] = {k: v for k, v in shield.items()  # fields added 2026-12-07 only when set: ring caches stay valid
-                             if k not in ("unobserved_speed", "unobserved_brake", "lane_end") or v != default[k]}
+                             if k not in ("unobserved_speed", "unobserved_brake", "lane_end", "beyond_lane") or v != default[k]}
         if self.params is not None:  # (likewise)
             out["params"] = dataclasses.asdict(self.params) if dataclasses.is_dataclass(self.params) else self.params
         return out

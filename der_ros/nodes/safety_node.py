@@ -77,6 +77,9 @@ class SafetyNode(Node):
             raise ValueError("safety.kind = 'sumo': SUMO's verdict needs the simulation, which only the bridge holds; "
                              "use 'rss' in the graph (or der train --safety sumo in process)")  # fmt: skip
         mask = RssChecker(shield).mask if shield.kind == "rss" else _allow_all
+        if shield.kind == "rss" and shield.beyond_lane:
+            self.get_logger().warning("safety.beyond_lane has no effect here: the state carries no lane two away "
+                                      "(docs/safety.md, 'The exit scenario')")  # fmt: skip
         self.filter = CommandFilter(mask, max_state_age=self.cfg.max_state_age, max_states=self.cfg.max_states,
                                     max_command_wait=self.cfg.max_command_wait, n_actions=self.cfg.n_actions)  # fmt: skip
         self.sender_id = f"{self.get_fully_qualified_name()}#{os.getpid()}"

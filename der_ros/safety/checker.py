@@ -17,7 +17,10 @@ each distance from :func:`der_ros.safety.rss.safe_longitudinal_distance` plus ``
 slot means no vehicle within the neighbour range (30 m): it imposes nothing, except that with
 ``unobserved_speed`` > 0 an empty *follower* slot stands for a car at the range driving at that speed
 (the fastest car that may be just out of sight; an unseen leader is the ego's own car-following's
-business, as the own-lane leader is). Keep lane is always
+business, as the own-lane leader is). With ``beyond_lane`` and the beyond points (the env's
+``info["beyond_points"]``: the nearest car ahead and behind two lanes to each side), a car on the lane
+beyond the target lane must keep the same RSS distances as if it were in the target lane already: it may
+change into that lane in the same step as the ego (exit scenario, cause C). Keep lane is always
 safe. A malformed ego row (non-finite numbers, a wrong shape) allows keep only: the shield fails
 safe. What this does *not* cover is in docs/safety.md.
 """
@@ -30,7 +33,7 @@ import numpy as np
 
 from der_ros.safety.config import SafetyConfig
 from der_ros.safety.rss import safe_longitudinal_distance
-from sumo_bridge.observation import POINT_FIELDS, SLOT_NAMES, ObservationConfig
+from sumo_bridge.observation import BEYOND_NAMES, POINT_FIELDS, SLOT_NAMES, ObservationConfig
 
 __all__ = ["RssChecker", "N_ACTIONS", "SIDES"]
 
@@ -44,6 +47,8 @@ _SPEED, _REL, _GAP, _LANE = _COL["speed"], _COL["rel_speed"], _COL["gap"], _COL[
 _PRESENT, _LANES, _TARGET = _COL["present"], _COL["lane_count"], _COL["target_lane"]
 _ROW = {name: 1 + i for i, name in enumerate(SLOT_NAMES)}
 _SHAPE = (1 + len(SLOT_NAMES), len(POINT_FIELDS))
+_BEYOND_ROW = {name: i for i, name in enumerate(BEYOND_NAMES)}
+_BEYOND_SHAPE = (len(BEYOND_NAMES), len(POINT_FIELDS))
 
 
 class RssChecker:
@@ -81,8 +86,10 @@ class RssChecker:
             return True
         return v_ego * v_ego / (2.0 * to_diverge) <= self.cfg.brake_max
 
-    def change_safe(self, points: np.ndarray | list[list[float]], action: int) -> bool:
-        """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists)."""
+    def change_safe(self, points: np.ndarray | list[list[float]], action: int,
+                    beyond: np.ndarray | list[list[float]] | None = None) -> bool:
+        """True when the lane change ``action`` (1 left, 2 right) is safe in ``points`` (array or nested lists);
+        ``beyond``: the beyond points (``BEYOND_NAMES`` rows), read only with ``beyond_lane``."""
         side, offset = SIDES[action]
         ego = points[0]
         v_ego, lane, lanes = float(ego[_SPEED]), float(ego[_LANE]), float(ego[_LANES])
@@ -105,16 +112,41 @@ class RssChecker:
                 need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
             if not gap > need:
                 return False
+        if self.cfg.beyond_lane and beyond is not None and 0 <= lane + 2 * offset < lanes:
+            return self._beyond_safe(beyond, side, v_ego)
         return True
 
-    def mask(self, points: np.ndarray) -> np.ndarray:
-        """Safe actions in ``points`` (shape ``(1 + len(SLOT_NAMES), len(POINT_FIELDS))``)."""
+    def _beyond_safe(self, beyond: np.ndarray | list[list[float]], side: str, v_ego: float) -> bool:
+        """The cars two lanes to ``side`` keep the RSS distances they would need in the target lane (a car there
+        may change into it in the same step as the ego); an empty slot imposes nothing."""
+        for slot, is_leader in ((f"{side}2_leader", True), (f"{side}2_follower", False)):
+            row = beyond[_BEYOND_ROW[slot]]
+            if not row[_PRESENT] > 0.5:
+                continue
+            gap, v = float(row[_GAP]), v_ego + float(row[_REL])
+            if not (math.isfinite(gap) and math.isfinite(v)):
+                return False
+            need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
+            if not gap > need:
+                return False
+        return True
+
+    def mask(self, points: np.ndarray, beyond: np.ndarray | None = None) -> np.ndarray:
+        """Safe actions in ``points`` (shape ``(1 + len(SLOT_NAMES), len(POINT_FIELDS))``); ``beyond``: the beyond
+        points (shape ``(len(BEYOND_NAMES), len(POINT_FIELDS))``), None where they are unknown (the graph's state).
+        With ``beyond_lane`` a malformed ``beyond`` allows keep only."""
         out = np.zeros(N_ACTIONS, dtype=bool)
         out[0] = True
         pts = np.asarray(points, dtype=np.float64)
         if pts.shape != _SHAPE:
             return out
+        far = None
+        if self.cfg.beyond_lane and beyond is not None:
+            far_arr = np.asarray(beyond, dtype=np.float64)
+            if far_arr.shape != _BEYOND_SHAPE:
+                return out
+            far = far_arr.tolist()
         rows = pts.tolist()  # plain floats: several times faster to index than numpy scalars at this size
-        out[1] = self.change_safe(rows, 1)
-        out[2] = self.change_safe(rows, 2)
+        out[1] = self.change_safe(rows, 1, far)
+        out[2] = self.change_safe(rows, 2, far)
         return out

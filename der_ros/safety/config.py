@@ -16,7 +16,8 @@ on the target side stands for a vehicle just beyond the neighbour range driving 
 worst case for an occluded car). On the ``exit`` scenario a slow ego (1-7 m/s at the split) changed in
 front of cars at 25-29 m/s 32-37 m behind, just out of sight, and was hit; ``lane_end`` refuses a change
 away from the target lane that would make the ego stop harder than ``brake_max`` at the split
-(docs/safety.md, "The exit scenario"). A scenario file's ``safety:`` section states its fleet's
+(docs/safety.md, "The exit scenario"); ``beyond_lane`` treats a car two lanes away as a possible
+intruder into the target lane (the same section, cause C). A scenario file's ``safety:`` section states its fleet's
 worst case (:func:`fleet_cautious`); the shield then takes the more cautious of the two values.
 """
 
@@ -101,6 +102,13 @@ class SafetyConfig:
         "harder than brake_max to stop at the diverge ahead (the ego row's gap; scenario files with a goal edge, "
         "where every other lane ends for the ego). No effect where that gap is 0 (ring, urban)",
     )
+    beyond_lane: bool = param(
+        False,
+        "true: a car on the lane beyond the target lane (two lanes away, in process: the env's info['beyond_points']) "
+        "counts as a possible new leader or follower in the target lane, since it may change into it in the same step "
+        "as the ego: the change must keep the RSS distance to it too. The state message and the observation do not "
+        "carry that lane, so safety_node and the mask-mode target mask cannot apply it",
+    )
     unobserved_brake: float = param(
         9.0,
         "m/s^2 (> 0): the braking that unobserved car applies at least once it reacts (a car at the speed limit: "
@@ -123,7 +131,8 @@ class SafetyConfig:
 
 #: scenario ``safety:`` fields -> True where a larger value is the more cautious one
 FLEET_FIELDS: dict[str, bool] = {"response_time": True, "accel_max": True, "brake_min": False, "brake_max": True,
-                                 "unobserved_speed": True, "unobserved_brake": False, "lane_end": True}  # fmt: skip
+                                 "unobserved_speed": True, "unobserved_brake": False, "lane_end": True,
+                                 "beyond_lane": True}  # fmt: skip
 
 
 def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) -> SafetyConfig:
@@ -131,7 +140,7 @@ def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) 
 
     Per field the more cautious of the two: the longer response time, the larger acceleration and
     front-car braking, the *smaller* rear-car braking (a truck that stops at 7 m/s^2 cannot be assumed
-    to brake at 9), the faster unobserved car, the lane-end check on if either asks for it. Fields the section leaves out (None) keep ``cfg``'s
+    to brake at 9), the faster unobserved car, the lane-end and beyond-lane checks on if either asks for them. Fields the section leaves out (None) keep ``cfg``'s
     value, so a scenario without the section (ring, urban) leaves the shield exactly as configured.
     """
     changes: dict[str, float | bool] = {}

@@ -8,7 +8,9 @@ a lane exists on each side, and per slot the present flag, ``gap / neighbour_ran
 ``rel_speed / speed_scale``. It equals :class:`der_ros.safety.checker.RssChecker`'s mask on the
 points up to float32 rounding, as long as the ego's speed stays below ``speed_scale`` and relative
 speeds within +-``speed_scale`` (20 m/s on the shipped configs; the observation clips beyond).
-Vectorised numpy: one call per batch.
+The ``beyond_lane`` check (cars two lanes away) is not applied: the observation does not carry
+that lane, so in those states the target's max may run over a change the acting mask refused (a
+rare, optimistic target; docs/safety.md, "The exit scenario"). Vectorised numpy: one call per batch.
 """
 
 from __future__ import annotations

@@ -64,6 +64,12 @@ class ShieldWrapper(gym.Wrapper):
             log.info("shield: %s's safety section makes it %s", scenario.network if scenario else "?", self.cfg)
         rng = scenario.observation.neighbour_range if scenario is not None else None
         self._rss = (RssChecker(self.cfg) if rng is None else RssChecker(self.cfg, rng)) if cfg.kind == "rss" else None
+        if self._rss is not None and self.cfg.beyond_lane:  # the env then reads the lanes two out too
+            watch = getattr(env.unwrapped, "watch_beyond_lanes", None)
+            if watch is None:
+                raise ConfigError("safety.beyond_lane = true needs a lane-change env that reads the lanes two to "
+                                  f"either side; {env.unwrapped!r} does not")  # fmt: skip
+            watch()
         self._mask: np.ndarray | None = None
         #: the env's actions: the speed actions beyond keep/left/right are allowed (with_speed_actions)
         self._n_actions = int(getattr(env.action_space, "n", 3))
@@ -76,7 +82,7 @@ class ShieldWrapper(gym.Wrapper):
             raise ConfigError(f"safety.kind = {self.cfg.kind!r} needs a lane-change env (info['points']); "
                               f"{self.env.spec.id if self.env.spec else self.env!r} has none")  # fmt: skip
         if self._rss is not None:
-            return with_speed_actions(self._rss.mask(points), self._n_actions)
+            return with_speed_actions(self._rss.mask(points, info.get("beyond_points")), self._n_actions)
         inner = self.env.unwrapped
         return with_speed_actions(sumo_mask(inner.api, inner.ego_id, points), self._n_actions)
 

@@ -1,13 +1,15 @@
-"""The shield on the exit scenario's fleet (docs/safety.md, "The exit scenario"): the unseen follower and
-the trucks' braking, on situations taken from the diagnosed collisions; the ring's shield unchanged."""
+"""The shield on the exit scenario's fleet (docs/safety.md, "The exit scenario"): the unseen follower, the
+trucks' braking and the car two lanes away (beyond_lane), on situations taken from the diagnosed collisions;
+the ring's shield unchanged."""
 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
-from safety_points import ROW
+from safety_points import ROW, beyond
 from safety_points import situation as points
 
 from der_ros.safety import RssChecker, SafetyConfig
@@ -20,8 +22,10 @@ from sumo_bridge.scenario_file import SAFETY_KEYS, load_scenario_config
 OLD = SafetyConfig(kind="rss")  # the shipped defaults: what the exit table's shielded rows were trained behind
 
 
-def exit_shield() -> SafetyConfig:
-    return scenario_shield(OLD, load_scenario_config("exit"))
+def exit_shield(beyond_lane: bool = True) -> SafetyConfig:
+    """The exit's shield (its fleet's safety section), with the beyond-lane check on unless told otherwise
+    (it is an option: off in the shipped exit.yaml, docs/safety.md)."""
+    return dataclasses.replace(scenario_shield(OLD, load_scenario_config("exit")), beyond_lane=beyond_lane)
 
 
 def situation(ego_speed: float, lane: int, lanes: int = 4, to_diverge: float = 0.0,
@@ -37,8 +41,9 @@ def test_the_ring_and_urban_keep_their_shield_exactly() -> None:
 
 
 def test_exit_states_its_fleet() -> None:
-    cfg = exit_shield()
-    assert (cfg.brake_min, cfg.unobserved_speed, cfg.unobserved_brake, cfg.lane_end) == (9.0, 25.0, 9.0, True)
+    cfg = scenario_shield(OLD, load_scenario_config("exit"))
+    assert (cfg.brake_min, cfg.unobserved_speed, cfg.unobserved_brake, cfg.lane_end, cfg.beyond_lane) == (
+        9.0, 25.0, 9.0, True, False)  # beyond_lane: an option, off as shipped
     assert (cfg.response_time, cfg.accel_max, cfg.brake_max) == (OLD.response_time, OLD.accel_max, OLD.brake_max)
 
 
@@ -77,6 +82,95 @@ def test_leaving_the_exit_lane_just_before_the_split_is_refused() -> None:
     assert RssChecker(exit_shield()).mask(situation(23.55, 0, to_diverge=60.0, **slots))[1]
     # toward the target lane the ego does not have to stop: not refused for it
     assert RssChecker(exit_shield()).mask(situation(27.0, 1, to_diverge=24.0))[2]
+
+
+# Tuning episode 1500000118 (immediate driver behind the exit shield without beyond_lane), decision 21: the ego,
+# 16.6 m/s on lane 3 of 4, 30 m before the split, changed right into lane 2 (its slots there were far enough); a car
+# on lane 1 (12.7 m/s, 0.5 m of overlap) changed left into lane 2 in the same step: a side collision.
+INTRUDER = {"right_leader": (3.6, 8.4), "right_follower": (25.6, 1.7)}
+
+
+def test_a_car_two_lanes_away_alongside_refuses_the_change() -> None:
+    """The car on lane 1 overlaps the ego: as a new leader in lane 2 it would need 8.5 m. Refused with the exit's
+    beyond_lane; accepted without it (the old verdict) and where the beyond points are unknown (the graph)."""
+    pts = situation(16.6, 3, **INTRUDER)
+    far = beyond(16.6, 3, right2_leader=(-0.5, -3.9), right2_follower=(10.3, -4.1))
+    assert RssChecker(exit_shield()).mask(pts)[2]  # no beyond points: nothing two lanes away is known
+    assert not RssChecker(exit_shield()).mask(pts, far)[2]
+    assert RssChecker(dataclasses.replace(exit_shield(), beyond_lane=False)).mask(pts, far)[2]
+    assert RssChecker(OLD).mask(pts, far)[2]  # the ring's shield: off unless a scenario asks for it
+    # the same car as a follower: 0.5 m behind at 25 m/s (needs 22.7 m) refused; 29 m behind accepted
+    assert not RssChecker(exit_shield()).mask(pts, beyond(16.6, 3, right2_follower=(0.5, 8.4)))[2]
+    assert RssChecker(exit_shield()).mask(pts, beyond(16.6, 3, right2_follower=(29.0, 8.4)))[2]
+
+
+def test_a_car_two_lanes_away_far_enough_allows_the_change() -> None:
+    """The same car 20 m ahead (8.5 m needed) or a slower one 5 m behind: the change is allowed; a car two lanes
+    away on the *other* side, or on a lane that does not exist, imposes nothing on this change."""
+    pts = situation(16.6, 3, **INTRUDER)
+    assert RssChecker(exit_shield()).mask(pts, beyond(16.6, 3, right2_leader=(20.0, -3.9)))[2]
+    assert RssChecker(exit_shield()).mask(pts, beyond(16.6, 3, right2_follower=(5.0, -4.1)))[2]
+    assert RssChecker(exit_shield()).mask(pts, beyond(16.6, 3, left2_leader=(-0.5, -3.9)))[2]
+    on_lane_1 = situation(16.6, 1, right_leader=(20.0, 0.0), left_leader=(20.0, 0.0))
+    assert RssChecker(exit_shield()).mask(on_lane_1, beyond(16.6, 1, right2_leader=(-0.5, 0.0)))[2]  # no lane -1
+    refused = RssChecker(exit_shield()).mask(on_lane_1, beyond(16.6, 1, left2_leader=(-0.5, 0.0)))
+    assert refused[2] and not refused[1]  # lane 3 beyond lane 2: only the change to the left is refused
+
+
+def test_malformed_beyond_points_allow_keep_only() -> None:
+    pts = situation(16.6, 3, **INTRUDER)
+    bad = beyond(16.6, 3, right2_leader=(float("nan"), -3.9))
+    assert not RssChecker(exit_shield()).mask(pts, bad)[2]
+    assert RssChecker(exit_shield()).mask(pts, np.zeros((3, 12))).tolist() == [True, False, False]
+
+
+def test_the_exit_env_reports_the_cars_two_lanes_away_and_the_shield_uses_them() -> None:
+    """Tuning episode 1500000118 in SUMO, the change-now driver behind the exit shield: the env's beyond points hold
+    cars two lanes to either side (within the range, present rows only on lanes that exist); at some decision
+    a change the old verdict allowed is refused for a car there alone, and the episode has no caused collision
+    (without beyond_lane it ends in the side collision at decision 21)."""
+    from der_ros.train.config import load_experiment_config
+    from der_ros.train.envs import make_env_from_config
+    from sumo_bridge.observation import BEYOND_NAMES, field_index
+    from sumo_bridge.policies import immediate_policy
+
+    present, lane, gap = field_index("present"), field_index("lane"), field_index("gap")
+    cfg = load_experiment_config(Path(__file__).resolve().parents[2] / "config" / "exit.yaml")
+    env = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss", beyond_lane=True)),
+                               1_500_000_000)  # fmt: skip
+    no_beyond = RssChecker(exit_shield(beyond_lane=False))
+    try:
+        _obs, info = env.reset(seed=1_500_000_118)
+        refused_for_beyond = seen = 0
+        done, caused = False, False
+        while not done:
+            pts, far = info["points"], info["beyond_points"]
+            assert far.shape == (len(BEYOND_NAMES), pts.shape[1])
+            for i, name in enumerate(BEYOND_NAMES):
+                if far[i, present] > 0.5:
+                    seen += 1
+                    assert far[i, lane] == pts[0, lane] + (2 if name.startswith("left") else -2)
+                    assert far[i, gap] <= 30.0
+            mask = info["action_mask"]
+            refused_for_beyond += sum(bool(no_beyond.mask(pts)[a]) and not mask[a] for a in (1, 2))
+            _obs, _r, term, trunc, info = env.step(immediate_policy(pts))
+            done, caused = term or trunc, caused or bool(info.get("caused"))
+    finally:
+        env.close()
+    assert seen > 0 and refused_for_beyond > 0
+    assert not caused
+
+    # without the option the env does not read the lanes two out (its context subscription stays at +-1)
+    plain = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss")), 1_500_000_000)
+    try:
+        _obs, info = plain.reset(seed=1_500_000_118)
+        for _ in range(15):
+            assert not (info["beyond_points"][:, present] > 0.5).any()
+            _obs, _r, term, trunc, info = plain.step(0)
+            if term or trunc:
+                break
+    finally:
+        plain.close()
 
 
 def test_fleet_takes_the_more_cautious_value_and_never_loosens() -> None:
