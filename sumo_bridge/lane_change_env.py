@@ -185,9 +185,9 @@ from sumo_bridge.flow_scenario import FlowScenarioMixin
 from sumo_bridge.network_build import BuiltNetwork, build_network, build_scenario_network
 from sumo_bridge.observation import (
     BEYOND_NAMES,
-    empty_beyond_points,
     POINT_FIELDS,
     SLOT_NAMES,
+    empty_beyond_points,
     empty_points,
     encode_observation,
     encode_point_rows,
