@@ -18,11 +18,15 @@ def situation(ego_speed: float = 15.0, lane: int = 0, lanes: int = 2, to_diverge
     pts[0, COL["speed"]], pts[0, COL["lane"]], pts[0, COL["lane_count"]] = ego_speed, lane, lanes
     pts[0, COL["gap"]], pts[0, COL["target_lane"]] = to_diverge, target_lane
     for name, (gap, rel) in slots.items():
-        row = pts[ROW[name]]
-        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
-        row[COL["speed"]] = ego_speed + rel
-        row[COL["lane"]] = lane + (1 if name.startswith("left") else -1)
+        _neighbour(pts[ROW[name]], gap, rel, ego_speed, lane + (1 if name.startswith("left") else -1))
     return pts
+
+
+def _neighbour(row: np.ndarray, gap: float, rel: float, ego_speed: float, lane: int) -> None:
+    """Fill a present neighbour row: its gap, relative speed, speed and lane."""
+    row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
+    row[COL["speed"]] = ego_speed + rel
+    row[COL["lane"]] = lane
 
 
 BEYOND_ROW = {name: i for i, name in enumerate(BEYOND_NAMES)}
@@ -33,8 +37,5 @@ def beyond(ego_speed: float = 15.0, lane: int = 0, **slots: tuple[float, float])
     ``slot=(gap, rel_speed)`` fills one of ``left2_leader, left2_follower, right2_leader, right2_follower``."""
     pts = empty_beyond_points()
     for name, (gap, rel) in slots.items():
-        row = pts[BEYOND_ROW[name]]
-        row[COL["present"]], row[COL["gap"]], row[COL["rel_speed"]] = 1.0, gap, rel
-        row[COL["speed"]] = ego_speed + rel
-        row[COL["lane"]] = lane + (2 if name.startswith("left") else -2)
+        _neighbour(pts[BEYOND_ROW[name]], gap, rel, ego_speed, lane + (2 if name.startswith("left") else -2))
     return pts

@@ -104,30 +104,29 @@ class RssChecker:
             if not row[_PRESENT] > 0.5:
                 if is_leader or self.cfg.unobserved_speed <= 0.0:
                     continue
-                gap, need = self.neighbour_range, self.unobserved_follower_distance(v_ego)  # the unseen car, at the range
-            else:
-                gap, v = float(row[_GAP]), v_ego + float(row[_REL])
-                if not (math.isfinite(gap) and math.isfinite(v)):
+                if not self.neighbour_range > self.unobserved_follower_distance(v_ego):  # the unseen car, at the range
                     return False
-                need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
-            if not gap > need:
+            elif not self._keeps_distance(row, is_leader, v_ego):
                 return False
         if self.cfg.beyond_lane and beyond is not None and 0 <= lane + 2 * offset < lanes:
             return self._beyond_safe(beyond, side, v_ego)
         return True
+
+    def _keeps_distance(self, row: np.ndarray | list[float], is_leader: bool, v_ego: float) -> bool:
+        """A present neighbour ``row`` keeps the RSS distance to the ego as its new leader or follower (a
+        non-finite gap or speed does not)."""
+        gap, v = float(row[_GAP]), v_ego + float(row[_REL])
+        if not (math.isfinite(gap) and math.isfinite(v)):
+            return False
+        need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
+        return gap > need
 
     def _beyond_safe(self, beyond: np.ndarray | list[list[float]], side: str, v_ego: float) -> bool:
         """The cars two lanes to ``side`` keep the RSS distances they would need in the target lane (a car there
         may change into it in the same step as the ego); an empty slot imposes nothing."""
         for slot, is_leader in ((f"{side}2_leader", True), (f"{side}2_follower", False)):
             row = beyond[_BEYOND_ROW[slot]]
-            if not row[_PRESENT] > 0.5:
-                continue
-            gap, v = float(row[_GAP]), v_ego + float(row[_REL])
-            if not (math.isfinite(gap) and math.isfinite(v)):
-                return False
-            need = self.leader_distance(v_ego, v) if is_leader else self.follower_distance(v_ego, v)
-            if not gap > need:
+            if row[_PRESENT] > 0.5 and not self._keeps_distance(row, is_leader, v_ego):
                 return False
         return True
 
