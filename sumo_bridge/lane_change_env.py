@@ -813,8 +813,10 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         closed, lap = self._closed_corridor, self._loop_length
         half = 0.5 * lap
         has_left, has_right = ego_lane + 1 < n_lanes, ego_lane > 0
-        # the slots, then the beyond points (two lanes away): indices 6.. of ``best``
-        best: list[tuple[float, str, dict[int, Any]] | None] = [None] * (len(SLOT_NAMES) + len(BEYOND_NAMES))
+        # the slots, then (watch_beyond_lanes) the beyond points, two lanes away: indices 6.. of ``best``
+        watching = self._ctx_lanes is _CTX_LANES_BEYOND
+        best: list[tuple[float, str, dict[int, Any]] | None] = [None] * (
+            len(SLOT_NAMES) + (len(BEYOND_NAMES) if watching else 0))
         for vid, var in ctx.items():
             offset = var[_V_LANE] - ego_lane
             if offset == 0:
@@ -873,10 +875,12 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
             speed = var[_V_SPEED]
             rows.append([dx * fx + dy * fy, -dx * fy + dy * fx, 0.0, speed, speed - ego_speed, gap, var[_V_LANE],
                          -1.0, 1.0, slot + 1.0, self._lane_count(var[_V_ROAD]), var[_V_LENGTH]])  # fmt: skip
-        n_slots = 1 + len(SLOT_NAMES)
-        self._beyond_points = np.array(rows[n_slots:], dtype=np.float64)
-        del rows[n_slots:]
-        self._slots = best[: len(SLOT_NAMES)]
+        if watching:  # else they stay the empty rows: nothing two lanes out is read
+            n_slots = 1 + len(SLOT_NAMES)
+            self._beyond_points = np.array(rows[n_slots:], dtype=np.float64)
+            del rows[n_slots:]
+            best = best[: len(SLOT_NAMES)]
+        self._slots = best
         self._ego_lane, self._ego_lane_count = int(ego_lane), n_lanes
         self._ego_xy_angle = (float(ex), float(ey), float(ego[_V_ANGLE]))
         self._ego_road_pos_speed = (ego_road, float(ego_pos), float(ego_speed))

@@ -202,3 +202,13 @@ def test_observation_mask_agrees_with_the_checker_on_empty_slots(speed: float) -
     assert (got != want).mean() < 0.01
     lane_end = RssChecker(dataclasses.replace(cfg, lane_end=False), obs_cfg.neighbour_range)
     assert any(not m[1] and lane_end.mask(p)[1] for p, m in zip(pts_all, masks))  # the lane-end check did refuse some
+
+
+def test_beyond_lane_on_an_env_that_cannot_read_two_lanes_out_is_refused() -> None:
+    import gymnasium as gym
+
+    from der_ros.configuration import ConfigError
+    from der_ros.safety.wrapper import ShieldWrapper
+
+    with pytest.raises(ConfigError, match="beyond_lane"):
+        ShieldWrapper(gym.make("CartPole-v1"), SafetyConfig(kind="rss", beyond_lane=True))
