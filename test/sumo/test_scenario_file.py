@@ -45,7 +45,7 @@ def _episodes(env: gym.Env, seeds: list[int], episodes_per_seed: int = 2) -> lis
     return out
 
 
-@pytest.mark.parametrize("name", ["ring", "urban"])
+@pytest.mark.parametrize("name", ["ring", pytest.param("urban", marks=pytest.mark.slow)])  # urban: ~6 s, full run only
 def test_builtin_scenario_files_give_the_code_built_episodes(name: str) -> None:
     """sumo_bridge/scenarios/{ring,urban}.yaml are ScenarioConfig.ring()/.urban(): same config, and the
     same episodes (observations, rewards, events) through der_ros/LaneChangeScenario-v0 as through the

@@ -157,6 +157,7 @@ def test_the_evaluation_process_exits_when_its_trainer_is_killed(tmp_path: Path)
     assert "leaked semaphore" not in err.read_text() and "Traceback" not in err.read_text(), err.read_text()
 
 
+@pytest.mark.slow  # starts an evaluator process (~5 s idle): full run only
 def test_the_process_evaluator_gives_the_inline_results_over_pipes() -> None:
     """Jobs larger than a pipe's buffer (a 1 MB network) queue up; results come back in order."""
     from der_ros.agent.config import DQNConfig
