@@ -1,30 +1,38 @@
 """Several environment workers feeding one learner (``train.num_envs`` > 1), deterministically.
 
 Each of the N workers is an :class:`~der_ros.train.env_process.EnvProcess` (one process each: libsumo
-allows one simulation per process). The learner takes the transitions in a fixed order, round robin --
-transition ``g`` of the run is worker ``g % N``'s ``(g // N)``-th step -- and takes one gradient step per
-transition, as with one env (the same replay ratio). What a worker does never depends on timing:
+allows one simulation per process) turned into a pool worker (:mod:`der_ros.train.pool_worker`). The
+learner takes the transitions in a fixed order, round robin -- transition ``g`` of the run is worker
+``g % N``'s ``(g // N)``-th step -- and takes one gradient step per transition, as with one env (the same
+replay ratio). What a worker does never depends on timing:
 
 * **Acting.** Worker ``j``'s ``k``-th action is epsilon-greedy with the exploration rate of the global step
   that transition will have (``k * N + j``), its own RNG, and a *behaviour snapshot* of the Q-network: the
-  network after round ``max(0, k - LAG_ROUNDS)`` (on a resume without the pool's state: no earlier than the resume's round) (a round = N transitions learnt). So a worker may run up to
-  :data:`LAG_ROUNDS` steps ahead of the learner. The lag is what lets N workers overlap at all on this task:
-  a ring step that commits a change simulates up to ~45 decisions' worth, 20-30 times a plain step, and in
+  network after round ``max(base, k - LAG_ROUNDS)`` (a round = N transitions learnt; ``base`` = 0, or on a
+  resume without the pool's state the resume's round). The worker chooses its actions itself, from the
+  snapshots the learner sends it at each round's end (the weights pickled once, the same bytes to every
+  worker that will use them), and streams its transitions back; it waits for the learner only when it is
+  more than :data:`LAG_ROUNDS` rounds ahead (its snapshot has not come) and never steps beyond the run
+  (``k * N + j >= train.total_steps``). The lag is what lets N workers overlap at all on this task: a ring
+  step that commits a change simulates up to ~45 decisions' worth, 20-30 times a plain step, and in
   lockstep every other worker would wait for it. With N = 1 none of this runs (the loop of
   :mod:`der_ros.train.runner` acts with the current network, as ever).
 * **Seeds** (derived from ``train.seed`` = s, see :func:`worker_seed`): worker 0's environment stream is
   seeded with s (as the single env's is), worker j > 0's with ``SeedSequence([s, j])`` folded into the
   training range (below :data:`~der_ros.train.eval_seeds.TRAINING_SEED_LIMIT`, disjoint from the evaluation
   seeds); worker j's exploration RNG is ``default_rng(SeedSequence([s, 7919, j]))``.
-* **Waiting.** The trainer blocks on the worker it needs next (``multiprocessing.connection.wait``) and the
-  workers block on their pipe (no polling, ``spin=0``): with N workers and the learner sharing few cores,
-  a spinning reader takes a core a simulation needs.
+* **Waiting.** The trainer blocks on the workers' pipes (``multiprocessing.connection.wait``) only when the
+  transition it needs next has not come; the workers block only for a snapshot, a request or the end (no
+  polling, ``spin=0``): with N workers and the learner sharing few cores, a spinning reader takes a core a
+  simulation needs.
 
-State for an exact resume (:meth:`EnvPool.state_dict`): every worker's pickled env (when the env pickles,
-as in :mod:`der_ros.train.envs`), its current observation, step count, RNG, the results it has simulated
-but the learner has not taken yet, and the behaviour snapshots still needed. Before a checkpoint the pool
-waits for the steps in flight (:meth:`EnvPool.quiesce`), which changes nothing that follows. For envs
-that do not pickle (SUMO, Atari) a resumed run starts fresh episodes, seeded from the step, as with one env.
+State for an exact resume (:meth:`EnvPool.state_dict`): the pool pauses every worker (:meth:`EnvPool.quiesce`:
+each answers, after the transitions it has streamed, with its pickled env when the env pickles, as in
+:mod:`der_ros.train.envs`, its current observation, step count and RNG), and saves that with the
+transitions simulated but not learnt yet and the behaviour snapshots still needed; then the workers go on,
+so a checkpoint changes nothing that follows. :meth:`EnvPool.load_state_dict` hands each worker its state
+back. For envs that do not pickle (SUMO, Atari) a resumed run starts fresh episodes, seeded from the step,
+as with one env.
 
 A worker that dies or fails raises a ``RuntimeError`` naming the worker (index, pid, exit code), and the
 others are closed with the run; Ctrl-C is the trainer's (the workers ignore SIGINT), as with one worker.
@@ -32,19 +40,19 @@ others are closed with the run; Ctrl-C is the trainer's (the workers ignore SIGI
 
 from __future__ import annotations
 
-import copy
 import logging
 import pickle
+import time
 from collections import deque
 from multiprocessing.connection import wait
 from typing import Any
 
 import numpy as np
-import torch
 
 from der_ros.train.config import MAX_NUM_ENVS
 from der_ros.train.env_process import EnvProcess
 from der_ros.train.eval_seeds import TRAINING_SEED_LIMIT, training_env_seed
+from der_ros.train.pool_worker import WorkerPlan, blob_of_tensors, snapshot_blob, snapshot_tensors
 
 __all__ = ["EnvPool", "LAG_ROUNDS", "MAX_NUM_ENVS", "worker_seed"]
 
@@ -52,6 +60,9 @@ log = logging.getLogger(__name__)
 
 #: most rounds a worker's behaviour network may lag behind the learner (see the module docstring)
 LAG_ROUNDS = 32
+
+#: longest wait for the workers to exit when the pool closes (then they are terminated)
+CLOSE_SECONDS = 30.0
 
 
 def worker_seed(run_seed: int, worker: int) -> int:
@@ -69,20 +80,18 @@ def _act_rng(run_seed: int, worker: int) -> np.random.Generator:
 class _Worker:
     """One env worker and what the pool knows of it."""
 
-    def __init__(self, index: int, proc: EnvProcess, rng: np.random.Generator) -> None:
+    def __init__(self, index: int, proc: EnvProcess) -> None:
         self.index = index
         self.proc = proc
-        self.rng = rng
-        self.obs: np.ndarray | None = None  # what its next action sees
-        self.launched = 0  # steps started (its k)
-        self.inflight: tuple[np.ndarray, int] | None = None  # (obs, action) of the step being simulated
-        self.results: deque[tuple[Any, ...]] = deque()  # simulated, not yet learnt
-        self.net: torch.nn.Module | None = None  # its behaviour network and the round loaded in it
-        self.net_round = -1
+        self.obs: np.ndarray | None = None  # its observation when it last started or paused
+        self.received = 0  # its steps whose results the trainer has (its k of the next result to come)
+        self.results: deque[tuple[Any, ...]] = deque()  # received, not yet learnt
+        self.acting = False  # a pool worker (after start / load_state_dict), streaming its results
+        self.paused: dict[str, Any] | None = None  # its answer to a pause
 
 
 class EnvPool:
-    """N env workers, one learner: transitions in a fixed order, actions from lagged snapshots."""
+    """N env workers, one learner: transitions in a fixed order, the workers act from lagged snapshots."""
 
     def __init__(self, env_cfg: Any, run_seed: int, num_envs: int) -> None:
         self.n = int(num_envs)
@@ -90,8 +99,7 @@ class EnvPool:
         self.workers: list[_Worker] = []
         try:
             for j in range(self.n):
-                self.workers.append(_Worker(j, EnvProcess(env_cfg, worker_seed(run_seed, j), spin=0.0),
-                                            _act_rng(run_seed, j)))  # fmt: skip
+                self.workers.append(_Worker(j, EnvProcess(env_cfg, worker_seed(run_seed, j), spin=0.0)))
         except BaseException:
             self.close()
             raise
@@ -99,146 +107,146 @@ class EnvPool:
         self.action_space = self.workers[0].proc.action_space
         self.learnt = 0  # transitions the learner has taken (this run, from step 0)
         self.limit = 0  # transitions the run will take in all (no worker steps beyond it)
-        self._snapshots: dict[int, dict[str, torch.Tensor]] = {}
+        self._snapshots: dict[int, bytes] = {}  # the rounds a worker may still use (for checkpoints)
         self._base = 0  # the round this run (or resume) started at: earlier rounds act with its snapshot
 
     # ------------------------------------------------------------------ set-up
     def start(self, agent: Any, total_steps: int, seeded: bool = True, step: int = 0) -> None:
         """Reset every worker (seeded with :func:`worker_seed`, or on a resume without env state with
-        ``training_env_seed(worker_seed, step)``) and take the round-0 snapshot from ``agent``."""
+        ``training_env_seed(worker_seed, step)``), take the round's snapshot from ``agent`` and set the
+        workers acting."""
         self.limit = int(total_steps)
         self.learnt = int(step)
         for w in self.workers:
             seed = worker_seed(self.run_seed, w.index)
-            w.obs, _info = w.proc.reset(seed=seed if seeded else training_env_seed(seed, step))
-            w.launched = self._launched_at(w.index, step)
+            w.obs, _info = self._call(w, w.proc.reset, seed if seeded else training_env_seed(seed, step))
         self._base = self.learnt // self.n
-        self._snapshots = {self._base: self._snapshot(agent)}
+        self._snapshots = {self._base: snapshot_blob(agent.q_net)}
+        for w in self.workers:
+            w.results = deque()
+            self._go(w, agent, self._launched_at(w.index, step), w.obs,
+                     _act_rng(self.run_seed, w.index).bit_generator.state)  # fmt: skip
 
     def _launched_at(self, j: int, step: int) -> int:
         """Steps worker j has had learnt when the learner has taken ``step`` transitions."""
         return (step - j + self.n - 1) // self.n if step > j else 0
 
+    def _go(self, w: _Worker, agent: Any, launched: int, obs: Any, rng_state: dict[str, Any]) -> None:
+        """Set ``w`` acting from its ``launched``-th step (``obs``, ``rng_state``)."""
+        first = self._round_for(launched)
+        plan = WorkerPlan(
+            index=w.index, num_envs=self.n, limit=self.limit, lag_rounds=LAG_ROUNDS, base=self._base,
+            launched=launched, obs=obs, rng_state=rng_state, epsilon_schedule=agent.epsilon_schedule,
+            n_actions=int(agent.n_actions), obs_shape=tuple(agent.obs_shape), obs_dtype=agent.obs_dtype.str,
+            network=agent.cfg.network, hidden_sizes=tuple(int(h) for h in agent.cfg.hidden_sizes),
+            snapshots={r: b for r, b in self._snapshots.items() if r >= first},
+        )  # fmt: skip
+        self._call(w, w.proc.post, "pool", plan)
+        w.received = launched
+        w.acting = True
+
+    def _call(self, w: _Worker, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` on ``w``'s process, a failure named after the worker."""
+        try:
+            return fn(*args)
+        except RuntimeError as exc:
+            raise RuntimeError(f"env worker {w.index} of {self.n} (pid {w.proc.pid}): {exc}") from exc
+
     # ------------------------------------------------------------------ the loop
-    def next_transition(self, agent: Any) -> tuple[Any, ...]:
+    def next_transition(self) -> tuple[Any, ...]:
         """The next transition in the fixed order, (obs, action, reward, next_obs, terminated, truncated, info,
-        reset) with ``reset`` the (obs, info) of the reset after an episode's end (else None). Starts every
-        step that may start (before the caller's gradient step, so the workers simulate meanwhile)."""
+        reset) with ``reset`` the (obs, info) of the reset after an episode's end (else None)."""
         w = self.workers[self.learnt % self.n]
         while not w.results:
-            self._launch_ready(agent)
-            self._receive(w, agent)
-        self._collect_done(agent)
+            self._take(timeout=None)
         return w.results.popleft()
 
     def learnt_one(self, agent: Any) -> None:
-        """The caller has stored the transition and taken its gradient step: count it, snapshot at a round's end."""
+        """The caller has stored the transition and taken its gradient step: count it; at a round's end send
+        the round's snapshot to the workers that will act with it."""
         self.learnt += 1
-        if self.learnt % self.n == 0:
-            self._snapshots[self.learnt // self.n] = self._snapshot(agent)
-            needed = self._round_for(min(w.launched for w in self.workers))  # the oldest a next action uses
-            for old in [k for k in self._snapshots if k < needed]:
-                del self._snapshots[old]
-        self._collect_done(agent)
-
-    def _collect_done(self, agent: Any) -> None:
-        """Take every step that has finished (without waiting) and start the next ones: called around the
-        caller's gradient step, so a worker whose step came in meanwhile does not idle until the learner
-        next has to wait for a step."""
-        flying = {w.proc.connection: w for w in self.workers if w.inflight is not None}
-        if flying:
-            for conn in wait(list(flying), timeout=0):
-                self._collect(flying[conn])
-        self._launch_ready(agent)
-
-    def _launch_ready(self, agent: Any) -> None:
+        if self.learnt % self.n:
+            return
+        r = self.learnt // self.n
+        # kept even when no step of this run uses it: a resume with a larger train.total_steps will
+        blob = self._snapshots[r] = snapshot_blob(agent.q_net)
         for w in self.workers:
-            if w.inflight is not None:
-                continue
-            k = w.launched
-            if k * self.n + w.index >= self.limit:
-                continue  # the run ends before this step would be learnt
-            r = self._round_for(k)
-            if r not in self._snapshots:
-                continue  # the learner is more than LAG_ROUNDS rounds behind this worker
-            assert w.obs is not None
-            action = self._act(agent, w, r, k * self.n + w.index)
-            try:
-                w.proc.step_async(action)
-            except RuntimeError as exc:
-                raise RuntimeError(f"env worker {w.index} of {self.n} (pid {w.proc.pid}): {exc}") from exc
-            w.inflight = (w.obs, action)
-            w.launched += 1
+            if (r + LAG_ROUNDS) * self.n + w.index < self.limit:  # its step r + LAG_ROUNDS acts with it
+                self._call(w, w.proc.post, "snapshot", r, blob)
+        oldest = min(self._round_for(w.received) for w in self.workers)  # no worker acts with an older one
+        for old in [k for k in self._snapshots if k < oldest]:
+            del self._snapshots[old]
+        self._take(timeout=0)  # what has come meanwhile (a worker never waits on a full pipe)
 
     def _round_for(self, k: int) -> int:
         """The snapshot round a worker's ``k``-th action uses."""
         return max(self._base, k - LAG_ROUNDS)
 
-    def _act(self, agent: Any, w: _Worker, r: int, global_step: int) -> int:
-        eps = agent.epsilon_schedule.value(global_step)
-        if eps > 0.0 and w.rng.random() < eps:
-            return int(w.rng.integers(agent.n_actions))
-        if w.net is None:
-            w.net = copy.deepcopy(agent.q_net)
-            w.net.requires_grad_(False)
-        if w.net_round != r:
-            w.net.load_state_dict(self._snapshots[r])
-            w.net_round = r
-        with torch.inference_mode():
-            x = torch.from_numpy(np.asarray(w.obs, dtype=agent.obs_dtype)).unsqueeze(0).to(agent.device)
-            return int(w.net(x).argmax(1).item())
+    def _take(self, timeout: float | None) -> None:
+        """Read every message that is in from any acting worker; wait up to ``timeout`` (None: until one is)."""
+        conns = {w.proc.connection: w for w in self.workers if w.acting}
+        for conn in wait(list(conns), timeout):
+            w = conns[conn]
+            self._read(w)
+            while conn.poll():
+                self._read(w)
 
-    def _receive(self, want: _Worker, agent: Any = None) -> None:
-        """Block until ``want``'s step is in; a step of another worker that arrives first is taken and (with
-        ``agent``) that worker's next step started at once, so it does not idle while the learner waits."""
-        if want.inflight is None:
-            raise RuntimeError(f"env pool: worker {want.index} has no step to wait for")  # a bug, not a user error
-        while want.inflight is not None:
-            flying = {w.proc.connection: w for w in self.workers if w.inflight is not None}
-            for conn in wait(list(flying)):
-                self._collect(flying[conn])
-            if agent is not None:
-                self._launch_ready(agent)
-
-    def _collect(self, w: _Worker) -> None:
-        try:
-            next_obs, reward, terminated, truncated, info, reset = w.proc.step_wait()
-        except RuntimeError as exc:
-            raise RuntimeError(f"env worker {w.index} of {self.n} (pid {w.proc.pid}): {exc}") from exc
-        obs, action = w.inflight  # type: ignore[misc]
-        w.inflight = None
-        w.results.append((obs, action, reward, next_obs, terminated, truncated, info, reset))
-        w.obs = reset[0] if (terminated or truncated) else next_obs
+    def _read(self, w: _Worker) -> None:
+        kind, payload = self._call(w, w.proc.receive)
+        if kind == "result":
+            w.results.append(payload)
+            w.received += 1
+        elif kind == "state":
+            w.paused = payload
+        else:  # a bug, not a user error
+            raise RuntimeError(f"env pool: unexpected message {kind!r} from worker {w.index}")
 
     def quiesce(self) -> None:
-        """Wait for every step in flight (before a checkpoint); what follows is unchanged."""
+        """Pause every worker and take its state (after the results it has streamed); :meth:`resume` goes on."""
         for w in self.workers:
-            if w.inflight is not None:
-                self._receive(w)
+            w.paused = None
+            self._call(w, w.proc.post, "pause")
+        for w in self.workers:
+            while w.paused is None:
+                self._read(w)
+            if int(w.paused["launched"]) != w.received:  # a bug, not a user error
+                raise RuntimeError(f"env pool: worker {w.index} paused at step {w.paused['launched']}, "
+                                   f"the trainer has {w.received} of its results")  # fmt: skip
+            w.obs = w.paused["obs"]
+
+    def resume(self) -> None:
+        """The workers act on after :meth:`quiesce` (from where they paused: nothing changes)."""
+        for w in self.workers:
+            w.paused = None
+            self._call(w, w.proc.post, "go")
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         self.quiesce()
-        return {
+        oldest = min(self._round_for(int(w.paused["launched"])) for w in self.workers)  # type: ignore[index]
+        state = {
             "num_envs": self.n,
             "learnt": self.learnt,
             "base": self._base,
-            "snapshots": {k: {n: t.clone() for n, t in s.items()} for k, s in self._snapshots.items()},
+            "snapshots": {k: snapshot_tensors(b) for k, b in self._snapshots.items() if k >= oldest},
             "workers": [
                 {
-                    "env": w.proc.pickled(),
-                    "obs": None if w.obs is None else np.array(w.obs, copy=True),
-                    "launched": w.launched,
-                    "rng": w.rng.bit_generator.state,
+                    "env": w.paused["env"],  # type: ignore[index]
+                    "obs": w.paused["obs"],  # type: ignore[index]
+                    "launched": int(w.paused["launched"]),  # type: ignore[index]
+                    "rng": w.paused["rng"],  # type: ignore[index]
                     "results": pickle.dumps(list(w.results), protocol=4),
                 }
                 for w in self.workers
             ],
         }
+        self.resume()
+        return state
 
     def load_state_dict(self, state: dict[str, Any], agent: Any, total_steps: int) -> bool:
-        """Restore a pool saved by :meth:`state_dict`; False (nothing restored) when an env did not pickle or
-        the checkpoint had another number of workers, in which case the caller starts fresh episodes (:meth:`start` with ``seeded=False``)."""
+        """Restore a pool saved by :meth:`state_dict` and set the workers acting; False (nothing restored) when
+        an env did not pickle or the checkpoint had another number of workers, in which case the caller starts
+        fresh episodes (:meth:`start` with ``seeded=False``)."""
         if int(state["num_envs"]) != self.n:
             log.warning("train.num_envs = %d, the checkpoint's run had %s env workers: starting fresh episodes",
                         self.n, state["num_envs"])  # fmt: skip
@@ -248,22 +256,29 @@ class EnvPool:
         self.limit = int(total_steps)
         self.learnt = int(state["learnt"])
         self._base = int(state["base"])
-        self._snapshots = {int(k): v for k, v in state["snapshots"].items()}
+        self._snapshots = {int(k): blob_of_tensors(v) for k, v in state["snapshots"].items()}
         for w, ws in zip(self.workers, state["workers"]):
-            w.proc.load(ws["env"])
+            self._call(w, w.proc.load, ws["env"])
+        for w, ws in zip(self.workers, state["workers"]):
             w.obs = ws["obs"]
-            w.launched = int(ws["launched"])
-            w.rng.bit_generator.state = ws["rng"]
             w.results = deque(pickle.loads(ws["results"]))
+            self._go(w, agent, int(ws["launched"]), ws["obs"], ws["rng"])
         return True
-
-    def _snapshot(self, agent: Any) -> dict[str, torch.Tensor]:
-        return {k: v.detach().clone() for k, v in agent.q_net.state_dict().items()}
 
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
-        for w in self.workers:  # all at once: each worker's exit (SUMO, the interpreter) takes a while
+        """Close every worker: all asked at once (each worker's exit, SUMO's and the interpreter's, takes a
+        while); what they still stream is read and dropped until they are gone."""
+        for w in self.workers:
             w.proc.request_close()
+        deadline = time.monotonic() + CLOSE_SECONDS
+        for w in self.workers:
+            conn = w.proc.connection
+            try:
+                while conn.poll(max(0.0, deadline - time.monotonic())):
+                    conn.recv()
+            except (EOFError, OSError):
+                pass  # the worker has closed its end: it is exiting
         for w in self.workers:
             w.proc.close()
 

@@ -11,7 +11,9 @@ replay waits for the worker at that gather and the step is not overlapped.
 Protocol (one ``multiprocessing`` pipe, pickled tuples): ``("reset", seed)`` -> ``(obs, info)``;
 ``("step", action)`` -> ``(obs, reward, terminated, truncated, info, reset)`` where ``reset`` is
 ``(obs, info)`` of the reset that follows a finished episode (done in the worker, before the
-answer) or None; ``("pickle",)`` / ``("load", bytes)`` for the runner's checkpoints; ``("close",)``.
+answer) or None; ``("pickle",)`` / ``("load", bytes)`` for the runner's checkpoints; ``("close",)``;
+``("pool", plan)`` turns the worker into one of :mod:`der_ros.train.env_pool`'s, which choose their own
+actions (:mod:`der_ros.train.pool_worker`: its protocol from then on).
 An exception in the worker comes back as ``("error", (type name, text))`` and is raised in the
 trainer (a ``ConfigError`` as one, anything else as a ``RuntimeError`` with the worker's traceback); a dead
 worker is a ``RuntimeError`` naming its exit code. The worker ignores SIGINT (Ctrl-C is the
@@ -120,6 +122,11 @@ def _serve(conn: Any, env_cfg: Any, seed: int, spin: float = SPIN_SECONDS) -> No
                     env.close()
                     env = pickle.loads(msg[1])
                     conn.send(("ok", None))
+                elif kind == "pool":  # from now on an env pool's worker: it acts by itself until closed
+                    from der_ros.train.pool_worker import serve_pool
+
+                    serve_pool(conn, env, msg[1])
+                    return
                 elif kind == "close":
                     return
                 else:
@@ -155,6 +162,10 @@ class EnvProcess:
             raise
 
     def _answer(self) -> Any:
+        return self.receive()[1]
+
+    def receive(self) -> tuple[str, Any]:
+        """The worker's next message ``(kind, payload)``; an ``("error", ...)`` is raised, as is a dead worker."""
         try:
             _wait(self._conn, self._spin)
             kind, payload = self._conn.recv()
@@ -165,7 +176,11 @@ class EnvProcess:
             if name in ("ConfigError", "ScenarioFileError"):  # a refused config stays a ConfigError (exit 2)
                 raise ConfigError(text)
             raise RuntimeError(f"in the environment process: {name}: {text}")
-        return payload
+        return kind, payload
+
+    def post(self, *msg: Any) -> None:
+        """Send a message that has no answer of its own (an env pool's worker streams its messages)."""
+        self._send(msg)
 
     def _died(self) -> RuntimeError:
         self._proc.join(timeout=5)

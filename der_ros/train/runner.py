@@ -421,7 +421,7 @@ class _TrainingRun:
         obs = self.obs
         reset: Any = None
         if pool is not None:  # the next transition in the pool's fixed order; the workers simulate meanwhile
-            obs, action, reward, next_obs, terminated, truncated, info, reset = pool.next_transition(agent)
+            obs, action, reward, next_obs, terminated, truncated, info, reset = pool.next_transition()
             agent.observe(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
             metrics = agent.learn()
             pool.learnt_one(agent)

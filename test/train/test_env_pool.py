@@ -2,13 +2,15 @@
 
 Pinned here: N = 1 is the loop of before (same episodes, losses and weights as a config without the
 field); N = 2 is deterministic for a seed, learns from both workers, one gradient step per transition;
-it resumes exactly (a finished half, and a Ctrl-C); a killed worker stops the run with an error naming
+each worker acts as the pool's docstring says (epsilon of its global step, its RNG, the snapshot of its
+round), stops at its snapshot horizon and never steps beyond the run; it resumes exactly (a finished half, and a Ctrl-C); a killed worker stops the run with an error naming
 it and leaves no process behind; bad values are refused with one line naming the field."""
 
 from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +23,8 @@ from der_ros import cli
 from der_ros.agent.dqn import DQNAgent, read_checkpoint
 from der_ros.configuration import ConfigError
 from der_ros.train.config import load_experiment_config
-from der_ros.train.env_pool import worker_seed
+from der_ros.train.env_pool import LAG_ROUNDS, EnvPool, _act_rng, worker_seed
+from der_ros.train.envs import obs_spec
 from der_ros.train.eval_seeds import TRAINING_SEED_LIMIT
 from der_ros.train.runner import train
 
@@ -145,3 +148,56 @@ def test_worker_seeds_come_from_the_run_seed_and_stay_training_seeds() -> None:
         assert all(0 <= s < TRAINING_SEED_LIMIT for s in seeds)
     assert [worker_seed(3, j) for j in range(4)] == [worker_seed(3, j) for j in range(4)]
     assert worker_seed(3, 1) != worker_seed(4, 1)
+
+
+def paused_steps(pool: EnvPool) -> list[int]:
+    """Each worker's step count, read by pausing it (every result it streamed before is then in)."""
+    pool.quiesce()
+    steps = [int(w.paused["launched"]) for w in pool.workers]  # type: ignore[index]
+    pool.resume()
+    return steps
+
+
+def settle(pool: EnvPool, expected: list[int]) -> list[int]:
+    """Step counts once the workers have reached ``expected`` (or a minute has passed), a moment later."""
+    deadline = time.monotonic() + 60
+    while paused_steps(pool) != expected and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)  # room to overshoot, if a worker would
+    return paused_steps(pool)
+
+
+def test_workers_act_as_specified_stop_at_their_horizon_and_at_the_runs_end() -> None:
+    cfg = load_experiment_config(CARTPOLE, small_overrides(100))
+    pool = EnvPool(cfg.env, 3, 2)
+    try:
+        shape, dtype = obs_spec(pool)
+        agent = DQNAgent(shape, dtype, int(pool.action_space.n), cfg.agent, cfg.replay, seed=3)
+        # nothing learnt: round 0's snapshot serves steps 0..LAG_ROUNDS, the next needs round 1
+        pool.start(agent, total_steps=10_000)
+        assert settle(pool, [LAG_ROUNDS + 1] * 2) == [LAG_ROUNDS + 1] * 2
+        for w in pool.workers:  # the k-th action: epsilon of step 2k + j, the worker's RNG, round 0's net
+            assert len(w.results) == LAG_ROUNDS + 1
+            rng, greedy = _act_rng(3, w.index), 0
+            for k, (obs, action, *_rest) in enumerate(w.results):
+                eps = agent.epsilon_schedule.value(2 * k + w.index)
+                if eps > 0.0 and rng.random() < eps:
+                    assert action == int(rng.integers(agent.n_actions))
+                else:
+                    q = agent.q_net(torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0))
+                    assert action == int(q.argmax(1).item())
+                    greedy += 1
+            assert greedy > 0
+        pool.learnt_one(agent)
+        pool.learnt_one(agent)  # round 1 ends: one more step each
+        assert settle(pool, [LAG_ROUNDS + 2] * 2) == [LAG_ROUNDS + 2] * 2
+    finally:
+        pool.close()
+    pool = EnvPool(cfg.env, 3, 2)
+    try:
+        pool.start(agent, total_steps=7)  # transitions 0..6: worker 0's steps 0..3, worker 1's 0..2
+        assert settle(pool, [4, 3]) == [4, 3]
+        assert [len(w.results) for w in pool.workers] == [4, 3]
+    finally:
+        pool.close()
+    assert not live_children()
