@@ -212,3 +212,38 @@ def test_beyond_lane_on_an_env_that_cannot_read_two_lanes_out_is_refused() -> No
 
     with pytest.raises(ConfigError, match="beyond_lane"):
         ShieldWrapper(gym.make("CartPole-v1"), SafetyConfig(kind="rss", beyond_lane=True))
+
+
+# The own-lane leader (docs/safety.md, "The own-lane leader"): tuning episode 1500000062 (dqn+shield seed1000 of the exit
+# table behind the exit shield with beyond_lane) and 8 of the exit table's 15 caused collisions: the ego changed in front
+# of a car standing at the split, keeping the RSS distance for an ego that brakes at 9 m/s^2, and SUMO's ego braked at
+# 4.5 (a TraCI setSpeed target with speed mode 31 never brakes harder than decel).
+STANDING = {"right_leader": (11.7, -12.5), "right_follower": (25.0, 0.0)}
+
+
+def test_the_new_leader_check_uses_the_egos_own_braking() -> None:
+    """Ego 12.5 m/s on lane 2, 18 m before the split, changing right toward the exit lane; a car stands 11.7 m ahead on
+    lane 1. Braking at 9 the ego needs 10.3 m: allowed. An ego that brakes at 4.5 needs 19.4 m: refused (ego_brake);
+    20 m ahead is enough for it. The new follower's distance does not depend on the ego's braking."""
+    pts = situation(12.5, 2, to_diverge=18.0, **STANDING)
+    slow = dataclasses.replace(exit_shield(), ego_brake=4.5)
+    assert RssChecker(exit_shield()).leader_distance(12.5, 0.0) == pytest.approx(10.31, abs=0.01)
+    assert RssChecker(slow).leader_distance(12.5, 0.0) == pytest.approx(19.35, abs=0.01)
+    assert RssChecker(exit_shield()).mask(pts)[2]
+    assert not RssChecker(slow).mask(pts)[2]
+    assert RssChecker(slow).mask(situation(12.5, 2, to_diverge=18.0, right_leader=(20.0, -12.5),
+                                           right_follower=(25.0, 0.0)))[2]  # fmt: skip
+    assert RssChecker(slow).follower_distance(12.5, 20.0) == RssChecker(exit_shield()).follower_distance(12.5, 20.0)
+    assert exit_shield().ego_braking == exit_shield().brake_min == 9.0  # 0: the ego brakes like the others
+    # the mask-mode learner's target (from the stored observation) agrees
+    obs_cfg = ObservationConfig(max_lanes=4, goal_distance_scale=300.0)
+    obs = encode_observation(pts, obs_cfg)
+    assert ObservationMask(exit_shield(), obs_cfg)(obs)[0, 2]
+    assert not ObservationMask(slow, obs_cfg)(obs)[0, 2]
+
+
+def test_a_fleet_may_state_the_egos_braking() -> None:
+    assert fleet_cautious(OLD, {"ego_brake": 4.5}).ego_braking == 4.5
+    slow = dataclasses.replace(OLD, ego_brake=4.5)
+    assert fleet_cautious(slow, {"ego_brake": 9.0}) is slow  # never loosened
+    assert fleet_cautious(OLD, {"ego_brake": 9.0}) is OLD  # 9 = brake_min: already in force
