@@ -112,8 +112,8 @@ class SafetyConfig:
     ego_brake: float = param(
         0.0,
         "m/s^2: the braking the ego applies at least once it reacts, as the rear car behind a new leader; 0 (the "
-        "default): brake_min. Lower it for an ego that cannot brake as hard as the other cars, e.g. a SUMO ego held at a "
-        "TraCI setSpeed target with speed mode 31, which brakes at its decel (4.5), never at its emergencyDecel "
+        "default): brake_min. Lower it for an ego that cannot brake as hard as the other cars, e.g. a SUMO ego held "
+        "at a TraCI setSpeed target with speed mode 31, which brakes at its decel (4.5), never at its emergencyDecel "
         "(docs/safety.md, 'The own-lane leader')",
         low=0.0,
         high=20.0,

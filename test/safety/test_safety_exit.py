@@ -214,17 +214,18 @@ def test_beyond_lane_on_an_env_that_cannot_read_two_lanes_out_is_refused() -> No
         ShieldWrapper(gym.make("CartPole-v1"), SafetyConfig(kind="rss", beyond_lane=True))
 
 
-# The own-lane leader (docs/safety.md, "The own-lane leader"): tuning episode 1500000062 (dqn+shield seed1000 of the exit
-# table behind the exit shield with beyond_lane) and 8 of the exit table's 15 caused collisions: the ego changed in front
-# of a car standing at the split, keeping the RSS distance for an ego that brakes at 9 m/s^2, and SUMO's ego braked at
-# 4.5 (a TraCI setSpeed target with speed mode 31 never brakes harder than decel).
+# The own-lane leader (docs/safety.md, "The own-lane leader"): tuning episode 1500000062 (dqn+shield seed1000 of the
+# exit table behind the exit shield with beyond_lane) and 8 of the exit table's 15 caused collisions: the ego changed
+# in front of a car standing at the split, keeping the RSS distance for an ego that brakes at 9 m/s^2, and SUMO's ego
+# braked at 4.5 (a TraCI setSpeed target with speed mode 31 never brakes harder than decel).
 STANDING = {"right_leader": (11.7, -12.5), "right_follower": (25.0, 0.0)}
 
 
 def test_the_new_leader_check_uses_the_egos_own_braking() -> None:
     """Hand-built like tuning episode 1500000062: ego 12.5 m/s on lane 2, 18 m before the split, changing right toward
-    the exit lane; a car stands 11.7 m ahead on lane 1. Braking at 9 the ego needs 10.3 m: allowed. An ego that brakes at 4.5 needs 19.4 m: refused (ego_brake);
-    20 m ahead is enough for it. The new follower's distance does not depend on the ego's braking."""
+    the exit lane; a car stands 11.7 m ahead on lane 1. Braking at 9 the ego needs 10.3 m: allowed. An ego that
+    brakes at 4.5 needs 19.4 m: refused (ego_brake); 20 m ahead is enough for it. The new follower's distance does
+    not depend on the ego's braking."""
     pts = situation(12.5, 2, to_diverge=18.0, **STANDING)
     slow = dataclasses.replace(exit_shield(), ego_brake=4.5)
     assert RssChecker(exit_shield()).leader_distance(12.5, 0.0) == pytest.approx(10.31, abs=0.01)
