@@ -34,9 +34,18 @@ the end of each decision.
 Speed actions
 -------------
 ``faster`` / ``slower`` move the ego's target speed by ``speed_step`` from its current target
-(or, first, its current speed), clipped to [0, the lane's speed limit]; ``vehicle.setSpeed`` with
-SUMO's default speed mode keeps the car-following safe (it brakes for its leader whatever the
-target).
+(or, first, its current speed), clipped to [0, the lane's speed limit]. The target is the ego's
+*maximum speed* (``vehicle.setMaxSpeed``), so the ego stays under its own car-following model: it
+accelerates at most at ``accel``, slows to a lower target at ``decel`` (4.5 m/s^2 for the exit's
+ego), and when its safe speed asks for more -- a car standing ahead after a lane change -- it brakes
+up to its ``emergencyDecel`` (9), as every SUMO car does and as the shield's ``brake_min`` assumes.
+Its dawdling is switched off with the first speed action (``vehicle.setImperfection(0)``): a
+commanded target speed is held, not dawdled below. Not ``vehicle.setSpeed``: a TraCI speed command
+with SUMO's default speed mode (31) "regards the maximum deceleration", i.e. never brakes harder
+than ``decel`` even when the safe speed needs it (``MSVehicle::Influencer::influenceSpeed`` floors
+the speed at ``minNextSpeed``), and with that bit cleared it brakes without any bound; the exit
+table's shielded agents ran into cars standing at the split that way (docs/safety.md, "The
+own-lane leader").
 """
 
 from __future__ import annotations
@@ -170,10 +179,16 @@ class FlowScenarioMixin:
 
     # ------------------------------------------------------------------ speed actions
     def _speed_action(self, a: int) -> None:
-        """3 = faster, 4 = slower: step the ego's target speed (SUMO's car-following keeps it safe)."""
-        api = self.api
+        """3 = faster, 4 = slower: step the ego's target speed, its maximum speed (see the module docstring:
+        SUMO's car-following keeps it safe, with emergency braking)."""
+        api, ego = self.api, self.ego_id
+        if self._target_speed is None:  # the first speed action of this ego: its own limits, then no dawdling
+            self._ego_top_speed = float(api.vehicle.getMaxSpeed(ego))
+            api.vehicle.setImperfection(ego, 0.0)
         base = self._target_speed if self._target_speed is not None else self._ego_road_pos_speed[2]
-        limit = float(api.vehicle.getAllowedSpeed(self.ego_id))
+        # the lane's limit for this ego (getAllowedSpeed would return the target set last)
+        limit = min(float(api.lane.getMaxSpeed(api.vehicle.getLaneID(ego))) * float(api.vehicle.getSpeedFactor(ego)),
+                    self._ego_top_speed)  # fmt: skip
         step = self.config.speed_step if a == 3 else -self.config.speed_step
         self._target_speed = min(max(base + step, 0.0), limit)
-        api.vehicle.setSpeed(self.ego_id, self._target_speed)
+        api.vehicle.setMaxSpeed(ego, self._target_speed)

@@ -261,6 +261,7 @@ class LaneChangeEnv(RingSetupMixin, UrbanSetupMixin, FlowScenarioMixin, gym.Env)
         self._edge_lengths: dict[str, float] = {}
         self._halted_s = 0.0  # file scenarios: seconds the ego has been halted in the miss zone
         self._target_speed: float | None = None  # speed actions: the ego's target speed (None: SUMO's own)
+        self._ego_top_speed = 0.0  # speed actions: the ego's own maximum speed, read at its first one
         self._ego_road_pos_speed: tuple[str, float, float] = ("", 0.0, 0.0)
         self._goal_edge = self._spec.goal.edge if self._spec is not None else None
         self._tc = constants()

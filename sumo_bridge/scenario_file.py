@@ -75,7 +75,8 @@ _TOP_KEYS = ("name", "network", "demand", "ego", "goal", "horizon", "reward", "a
 SAFETY_KEYS: dict[str, tuple[float, bool]] = {"response_time": (0.0, True), "accel_max": (0.0, True),
                                               "brake_min": (0.0, False), "brake_max": (0.0, False),
                                               "unobserved_speed": (0.0, True), "unobserved_brake": (0.0, False),
-                                              "lane_end": (0.0, True), "beyond_lane": (0.0, True)}  # fmt: skip  (lane_end, beyond_lane: true / false)
+                                              "lane_end": (0.0, True), "beyond_lane": (0.0, True),
+                                              "ego_brake": (0.0, False)}  # fmt: skip  (lane_end, beyond_lane: true / false)
 _REWARD_FIELDS = {"success": "reward_success", "collision": "reward_collision", "missed": "reward_missed",
                   "min_speed": "min_speed"}  # fmt: skip
 

@@ -9,7 +9,7 @@ A lane change to a side is safe when
 
 * the ego's lane has a lane on that side (``lane_count``; no lane there -> unsafe),
 * the new leader on that side (if observed) is farther ahead than the RSS safe distance with the
-  ego as the rear car, and
+  ego as the rear car (braking at ``ego_brake``, by default ``brake_min``: what the ego can really do), and
 * the new follower on that side (if observed) is farther behind than the RSS safe distance with
   the follower as the rear car,
 
@@ -60,6 +60,8 @@ class RssChecker:
         #: where an empty slot's unseen car may be (the observation's neighbour range, metres of gap)
         self.neighbour_range = float(neighbour_range)
         self._unseen = (cfg.response_time, cfg.accel_max, cfg.unobserved_brake, cfg.brake_max)
+        #: the ego as the rear car (a new leader): its own braking (``ego_brake``, default ``brake_min``)
+        self._ego_rear = (cfg.response_time, cfg.accel_max, cfg.ego_braking, cfg.brake_max)
 
     def unobserved_follower_distance(self, v_ego: float) -> float:
         """Safe gap (m) to the car an empty follower slot may hide (``unobserved_speed``, braking at
@@ -69,8 +71,8 @@ class RssChecker:
         return safe_longitudinal_distance(self.cfg.unobserved_speed, v_ego, *self._unseen) + self.cfg.margin
 
     def leader_distance(self, v_ego: float, v_leader: float) -> float:
-        """Safe gap (m) to a new leader: the ego is the rear car."""
-        return safe_longitudinal_distance(v_ego, v_leader, *self._params) + self.cfg.margin
+        """Safe gap (m) to a new leader: the ego is the rear car, braking at ``ego_brake`` (default ``brake_min``)."""
+        return safe_longitudinal_distance(v_ego, v_leader, *self._ego_rear) + self.cfg.margin
 
     def follower_distance(self, v_ego: float, v_follower: float) -> float:
         """Safe gap (m) to a new follower: the follower is the rear car."""

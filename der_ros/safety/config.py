@@ -109,6 +109,15 @@ class SafetyConfig:
         "as the ego: the change must keep the RSS distance to it too. The state message and the observation do not "
         "carry that lane, so safety_node and the mask-mode target mask cannot apply it",
     )
+    ego_brake: float = param(
+        0.0,
+        "m/s^2: the braking the ego applies at least once it reacts, as the rear car behind a new leader; 0 (the "
+        "default): brake_min. Lower it for an ego that cannot brake as hard as the other cars, e.g. a SUMO ego held "
+        "at a TraCI setSpeed target with speed mode 31, which brakes at its decel (4.5), never at its emergencyDecel "
+        "(docs/safety.md, 'The own-lane leader')",
+        low=0.0,
+        high=20.0,
+    )
     unobserved_brake: float = param(
         9.0,
         "m/s^2 (> 0): the braking that unobserved car applies at least once it reacts (a car at the speed limit: "
@@ -119,10 +128,15 @@ class SafetyConfig:
 
     def check(self) -> None:
         for name in ("response_time", "accel_max", "brake_min", "brake_max", "margin", "unobserved_speed",
-                     "unobserved_brake"):
+                     "unobserved_brake", "ego_brake"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ConfigError(f"safety.{name} = {value!r}, expected a finite number")
+
+    @property
+    def ego_braking(self) -> float:
+        """The ego's braking as a rear car (m/s^2): ``ego_brake``, or ``brake_min`` when that is 0."""
+        return float(self.ego_brake) if self.ego_brake > 0.0 else self.brake_min
 
     @property
     def enabled(self) -> bool:
@@ -132,7 +146,7 @@ class SafetyConfig:
 #: scenario ``safety:`` fields -> True where a larger value is the more cautious one
 FLEET_FIELDS: dict[str, bool] = {"response_time": True, "accel_max": True, "brake_min": False, "brake_max": True,
                                  "unobserved_speed": True, "unobserved_brake": False, "lane_end": True,
-                                 "beyond_lane": True}  # fmt: skip
+                                 "beyond_lane": True, "ego_brake": False}  # fmt: skip
 
 
 def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) -> SafetyConfig:
@@ -149,6 +163,8 @@ def fleet_cautious(cfg: SafetyConfig, fleet: Mapping[str, float | bool | None]) 
         if value is None:
             continue
         mine = getattr(cfg, name)
+        if name == "ego_brake":  # 0: brake_min's value is in force
+            mine = cfg.ego_braking
         pick = max(mine, value) if larger else min(mine, value)
         if pick != mine:
             changes[name] = type(mine)(pick)

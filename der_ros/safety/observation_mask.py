@@ -65,7 +65,7 @@ class ObservationMask:
                 present = x[:, _slot_col(slot, "present")] > 0.5
                 gap = x[:, _slot_col(slot, "gap")] * rng
                 v = v_ego + x[:, _slot_col(slot, "rel_speed")] * scale
-                need = _rss(v_ego, v, self.cfg) if is_leader else _rss(v, v_ego, self.cfg)
+                need = _rss(v_ego, v, self.cfg, self.cfg.ego_braking) if is_leader else _rss(v, v_ego, self.cfg)
                 ok &= ~present | (gap > need)
                 if not is_leader and self.cfg.unobserved_speed > 0.0:  # the unseen follower at the range
                     unseen = _rss(np.full_like(v_ego, self.cfg.unobserved_speed), v_ego, self.cfg, self.cfg.unobserved_brake)

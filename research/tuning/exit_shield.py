@@ -9,10 +9,11 @@ checkpoints greedily. Seeds: TUNING_EVAL_SEED_BASE + k, never a report seed.
     python research/tuning/exit_shield.py --episodes 300 --arm old 0 9 0 --arm exit 33.33 7 1 \\
         [--drivers immediate random gap_acceptance] [--runs RUN_DIR ...]
 
-An arm is NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END (0/1) [BEYOND_LANE (0/1), default 0] (the unseen car brakes
-at unobserved_brake 9; the ring's other parameters: rho 0.1 s, accel_max 2.6, brake_max 9). A run trained in mask
+An arm is NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END (0/1) [BEYOND_LANE (0/1), default 0] [EGO_BRAKE, default 0 =
+brake_min] (the unseen car brakes at unobserved_brake 9; the ring's other parameters: rho 0.1 s, accel_max 2.6,
+brake_max 9). A run trained in mask
 mode is evaluated in mask mode (greedy over the allowed actions), as its table row.
-Targets commit 'exitshield' of der_ros (BEYOND_LANE: branch 'causec').
+Targets commit 'exitshield' of der_ros (BEYOND_LANE: branch 'causec'; EGO_BRAKE: branch 'hole43').
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def main() -> None:
     ap.add_argument("--config", default="config/exit.yaml")
     ap.add_argument("--episodes", type=int, default=300)
     ap.add_argument("--arm", nargs="+", action="append", required=True,
-                    help="NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END [BEYOND_LANE]")
+                    help="NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END [BEYOND_LANE [EGO_BRAKE]]")
     ap.add_argument("--drivers", nargs="*", default=["immediate", "random", "gap_acceptance"])
     ap.add_argument("--runs", nargs="*", type=Path, default=[], help="run directories (config.yaml + checkpoint.pt)")
     args = ap.parse_args()
@@ -64,30 +65,31 @@ def main() -> None:
     t0 = time.perf_counter()
     print(f"{args.config}, {args.episodes} tuning episodes (seeds {TUNING_EVAL_SEED_BASE}+k) per row")
     for arm in args.arm:
-        if len(arm) not in (4, 5):
-            ap.error(f"--arm {' '.join(arm)}: expected NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END [BEYOND_LANE]")
-    print("| driver | shield | unobserved_speed | brake_min | lane_end | beyond_lane | success | caused | time limit | "
-          "missed | interventions/ep | caused seeds |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        if len(arm) not in (4, 5, 6):
+            ap.error(f"--arm {' '.join(arm)}: expected NAME UNOBSERVED_SPEED BRAKE_MIN LANE_END [BEYOND_LANE [EGO_BRAKE]]")
+    print("| driver | shield | unobserved_speed | brake_min | lane_end | beyond_lane | ego_brake | success | caused | "
+          "time limit | missed | interventions/ep | caused seeds |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     drivers = [(d, None) for d in args.drivers] + [(f"{r.parent.name}/{r.name}", r) for r in args.runs]
     for name, run_dir in drivers:
         for arm, unseen, bmin, lane_end, *rest in args.arm:
             beyond = rest[0] if rest else "0"
+            ego_brake = rest[1] if len(rest) > 1 else "0"
             shield = SafetyConfig(kind="rss", unobserved_speed=float(unseen), brake_min=float(bmin),
-                                  lane_end=bool(int(lane_end)), beyond_lane=bool(int(beyond)))
+                                  lane_end=bool(int(lane_end)), beyond_lane=bool(int(beyond)), ego_brake=float(ego_brake))
             if run_dir is None:
                 env_cfg = dataclasses.replace(cfg.env, safety=shield)
                 policy_for = lambda n, name=name: baseline_policy(name, gap, n_actions=n)  # noqa: E731
             else:
                 run_env = load_experiment_config(run_dir / "config.yaml").env
                 env_cfg = dataclasses.replace(run_env, safety=dataclasses.replace(run_env.safety, **{
-                    k: getattr(shield, k) for k in ("unobserved_speed", "brake_min", "lane_end", "beyond_lane")}))
+                    k: getattr(shield, k) for k in ("unobserved_speed", "brake_min", "lane_end", "beyond_lane", "ego_brake")}))
                 agent = DQNAgent.load(run_dir / "checkpoint.pt")
                 agent.q_net.eval()
                 use_mask = run_env.safety.mode == "mask"
                 policy_for = lambda n, net=agent.q_net, m=use_mask: GreedyQPolicy(net, np.float32, use_mask=m)  # noqa: E731
             c, iv, bad = run(env_cfg, policy_for, args.episodes)
-            print(f"| {name} | {arm} | {unseen} | {bmin} | {lane_end} | {beyond} | {c['success']} | {c['caused']} | {c['time_limit']} | "
+            print(f"| {name} | {arm} | {unseen} | {bmin} | {lane_end} | {beyond} | {ego_brake} | {c['success']} | {c['caused']} | {c['time_limit']} | "
                   f"{c['missed']} | {iv:.1f} | {bad} |", flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
 

@@ -212,3 +212,100 @@ def test_beyond_lane_on_an_env_that_cannot_read_two_lanes_out_is_refused() -> No
 
     with pytest.raises(ConfigError, match="beyond_lane"):
         ShieldWrapper(gym.make("CartPole-v1"), SafetyConfig(kind="rss", beyond_lane=True))
+
+
+# The own-lane leader (docs/safety.md, "The own-lane leader"): tuning episode 1500000062 (dqn+shield seed1000 of the
+# exit table behind the exit shield with beyond_lane) and 8 of the exit table's 15 caused collisions: the ego changed
+# in front of a car standing at the split, keeping the RSS distance for an ego that brakes at 9 m/s^2, and SUMO's ego
+# braked at 4.5 (a TraCI setSpeed target with speed mode 31 never brakes harder than decel).
+STANDING = {"right_leader": (11.7, -12.5), "right_follower": (25.0, 0.0)}
+
+
+def test_the_new_leader_check_uses_the_egos_own_braking() -> None:
+    """Hand-built like tuning episode 1500000062: ego 12.5 m/s on lane 2, 18 m before the split, changing right toward
+    the exit lane; a car stands 11.7 m ahead on lane 1. Braking at 9 the ego needs 10.3 m: allowed. An ego that
+    brakes at 4.5 needs 19.4 m: refused (ego_brake); 20 m ahead is enough for it. The new follower's distance does
+    not depend on the ego's braking."""
+    pts = situation(12.5, 2, to_diverge=18.0, **STANDING)
+    slow = dataclasses.replace(exit_shield(), ego_brake=4.5)
+    assert RssChecker(exit_shield()).leader_distance(12.5, 0.0) == pytest.approx(10.31, abs=0.01)
+    assert RssChecker(slow).leader_distance(12.5, 0.0) == pytest.approx(19.35, abs=0.01)
+    assert RssChecker(exit_shield()).mask(pts)[2]
+    assert not RssChecker(slow).mask(pts)[2]
+    assert RssChecker(slow).mask(situation(12.5, 2, to_diverge=18.0, right_leader=(20.0, -12.5),
+                                           right_follower=(25.0, 0.0)))[2]  # fmt: skip
+    assert RssChecker(slow).follower_distance(12.5, 20.0) == RssChecker(exit_shield()).follower_distance(12.5, 20.0)
+    assert exit_shield().ego_braking == exit_shield().brake_min == 9.0  # 0: the ego brakes like the others
+    # the mask-mode learner's target (from the stored observation) agrees
+    obs_cfg = ObservationConfig(max_lanes=4, goal_distance_scale=300.0)
+    obs = encode_observation(pts, obs_cfg)
+    assert ObservationMask(exit_shield(), obs_cfg)(obs)[0, 2]
+    assert not ObservationMask(slow, obs_cfg)(obs)[0, 2]
+
+
+def test_a_fleet_may_state_the_egos_braking() -> None:
+    assert fleet_cautious(OLD, {"ego_brake": 4.5}).ego_braking == 4.5
+    slow = dataclasses.replace(OLD, ego_brake=4.5)
+    assert fleet_cautious(slow, {"ego_brake": 9.0}) is slow  # never loosened
+    assert fleet_cautious(OLD, {"ego_brake": 9.0}) is OLD  # 9 = brake_min: already in force
+
+
+# The dqn's applied commands in tuning episode 1500000062 (dqn+shield seed1000 of the exit table, behind the exit shield
+# with beyond_lane; research/exit/diagnose_caused.py --seeds 1500000062 --beyond-lane, before the env fix): 3 faster,
+# 4 slower, 2 right. Its last command, decision 28 -> 2 to 1 at 14.7 m/s, 23 m before the split, a car at 1.9 m/s
+# 18.1 m ahead on lane 1 (RSS for an ego braking at 9: 13.7 m); the ego braked at 4.5 and hit it at decision 32.
+ACTIONS_62 = [3, 3, 3, 3, 3, 3, 4, 4, 4, 4, 0, 0, 0, 4, 4, 4, 0, 4, 4, 4, 4, 4, 3, 3, 3, 0, 0, 2, 2, 4, 4, 4]
+
+
+def _set_speed_action(env, a: int) -> None:  # noqa: ANN001
+    """The exit env's speed actions before the fix: a TraCI speed command (speed mode 31: never brakes harder than
+    decel)."""
+    api = env.api
+    base = env._target_speed if env._target_speed is not None else env._ego_road_pos_speed[2]
+    step = env.config.speed_step if a == 3 else -env.config.speed_step
+    env._target_speed = min(max(base + step, 0.0), float(api.vehicle.getAllowedSpeed(env.ego_id)))
+    api.vehicle.setSpeed(env.ego_id, env._target_speed)
+
+
+def _replay_62(set_speed: bool) -> tuple[list[str | None], bool, list[float]]:
+    """(events, caused, ego speeds per decision) of the recorded commands behind the exit shield with beyond_lane
+    (replace mode: a command the shield refuses in this replay becomes keep)."""
+    import types
+
+    from der_ros.train.config import load_experiment_config
+    from der_ros.train.envs import make_env_from_config
+    from sumo_bridge.observation import field_index
+
+    cfg = load_experiment_config(Path(__file__).resolve().parents[2] / "config" / "exit.yaml")
+    env = make_env_from_config(dataclasses.replace(cfg.env, safety=SafetyConfig(kind="rss", beyond_lane=True)),
+                               1_500_000_000)  # fmt: skip
+    if set_speed:
+        env.unwrapped._speed_action = types.MethodType(_set_speed_action, env.unwrapped)
+    speed = field_index("speed")
+    events, caused, speeds = [], False, []
+    try:
+        _obs, info = env.reset(seed=1_500_000_062)
+        speeds.append(float(info["points"][0, speed]))
+        for a in ACTIONS_62:
+            _obs, _r, term, trunc, info = env.step(a)
+            events.append(info.get("event"))
+            caused = caused or bool(info.get("caused"))
+            speeds.append(float(info["points"][0, speed]))
+            if term or trunc:
+                break
+    finally:
+        env.close()
+    return events, caused, speeds
+
+
+def test_the_egos_speed_actions_keep_its_emergency_brake() -> None:
+    """Tuning episode 1500000062 in SUMO. With the old speed actions (setSpeed) the recorded commands end in the caused
+    rear-end collision at the last one, the ego slowing at 4.5 m/s^2 (2.2-2.3 m/s per 0.5 s decision) after its last
+    change. With the env's speed actions (the target as the ego's maximum speed: it brakes up to its emergencyDecel,
+    as the shield assumes) the same commands cause no collision."""
+    events, caused, speeds = _replay_62(set_speed=True)
+    assert caused and events[-1] == "collision" and len(events) == len(ACTIONS_62)
+    after = [a - b for a, b in zip(speeds[28:-1], speeds[29:-1])]  # the decisions between the change and the hit
+    assert after and all(2.0 < dv <= 4.5 * 0.5 + 0.05 for dv in after)
+    events, caused, _ = _replay_62(set_speed=False)
+    assert not caused and "collision" not in events
