@@ -55,19 +55,52 @@ class GraphTraffic:
     def __init__(self, node: Any, episode_steps: int) -> None:
         import numpy as np
 
-        from der_ros.contract import (BRIDGE_DIAGNOSTICS, CLOCK, COMMAND, EPISODE, METRICS, ODOM, REWARD,
-                                      SAFETY_EVENTS, SCENE_ROAD, SCENE_VEHICLES, STATE, LaneLine)
+        from der_ros.contract import (
+            BRIDGE_DIAGNOSTICS,
+            CLOCK,
+            COMMAND,
+            EPISODE,
+            METRICS,
+            ODOM,
+            REWARD,
+            SAFETY_EVENTS,
+            SCENE_ROAD,
+            SCENE_VEHICLES,
+            STATE,
+            LaneLine,
+        )
         from der_ros.contract_ros import message_class, topic_qos
         from sumo_bridge.observation import POINT_FIELDS
 
         self.np, self.fields, self.episode_steps = np, POINT_FIELDS, max(2, episode_steps)
-        names = (CLOCK, REWARD, STATE, ODOM, COMMAND, SAFETY_EVENTS, SCENE_VEHICLES, EPISODE, METRICS,
-                 BRIDGE_DIAGNOSTICS, SCENE_ROAD)
+        names = (
+            CLOCK,
+            REWARD,
+            STATE,
+            ODOM,
+            COMMAND,
+            SAFETY_EVENTS,
+            SCENE_VEHICLES,
+            EPISODE,
+            METRICS,
+            BRIDGE_DIAGNOSTICS,
+            SCENE_ROAD,
+        )
         from der_ros.contract import topic_spec
 
         self.pubs = {n: node.create_publisher(message_class(topic_spec(n).msgtype), n, topic_qos(n)) for n in names}
-        self.names = dict(clock=CLOCK, reward=REWARD, state=STATE, odom=ODOM, cmd=COMMAND, safety=SAFETY_EVENTS,
-                          vehicles=SCENE_VEHICLES, episode=EPISODE, metrics=METRICS, diag=BRIDGE_DIAGNOSTICS)
+        self.names = dict(
+            clock=CLOCK,
+            reward=REWARD,
+            state=STATE,
+            odom=ODOM,
+            cmd=COMMAND,
+            safety=SAFETY_EVENTS,
+            vehicles=SCENE_VEHICLES,
+            episode=EPISODE,
+            metrics=METRICS,
+            diag=BRIDGE_DIAGNOSTICS,
+        )
         from der_ros.contract import road_markers_cdr
 
         lanes = [LaneLine(f"ring_{i}", np.array([[0.0, 3.2 * i], [100.0, 3.2 * i]]), 3.2) for i in range(3)]
@@ -79,10 +112,26 @@ class GraphTraffic:
 
     def step(self) -> int:
         """Publish one decision step; returns the messages published."""
-        from der_ros.contract import (EGO_ROLE, EPISODE_START, EPISODE_TIME_LIMIT, TRAFFIC_ROLE, VehicleMarker, clock_cdr, command_cdr,
-                                      episode_values, odometry_cdr, reward_cdr, state_cdr, vehicle_markers_cdr)
-        from der_ros.nodes.msg_conversions import (make_diagnostics, make_episode_event, make_safety_record,
-                                                   metrics_to_diagnostics)
+        from der_ros.contract import (
+            EGO_ROLE,
+            EPISODE_START,
+            EPISODE_TIME_LIMIT,
+            TRAFFIC_ROLE,
+            VehicleMarker,
+            clock_cdr,
+            command_cdr,
+            episode_values,
+            odometry_cdr,
+            reward_cdr,
+            state_cdr,
+            vehicle_markers_cdr,
+        )
+        from der_ros.nodes.msg_conversions import (
+            make_diagnostics,
+            make_episode_event,
+            make_safety_record,
+            metrics_to_diagnostics,
+        )
 
         np, k = self.np, self.step_index
         stamp = (k + 1) * 100_000_000
@@ -102,15 +151,20 @@ class GraphTraffic:
         pub[n["odom"]].publish(odometry_cdr(stamp, float(k % 500), 3.2, 90.0, 25.0))
         pub[n["cmd"]].publish(command_cdr(stamp, k % 3, "agent_node"))
         pub[n["safety"]].publish(make_safety_record(stamp, "pass", k % 3, k % 3, k // 50))
-        vehicles = [VehicleMarker(i, f"veh{self.vehicle_base + i}", EGO_ROLE if i == 0 else TRAFFIC_ROLE, 4.0 * i, 3.2,
-                                  0.01 * k, 5.0, 1.8) for i in range(25)]
+        vehicles = [
+            VehicleMarker(
+                i, f"veh{self.vehicle_base + i}", EGO_ROLE if i == 0 else TRAFFIC_ROLE, 4.0 * i, 3.2, 0.01 * k, 5.0, 1.8
+            )
+            for i in range(25)
+        ]
         pub[n["vehicles"]].publish(vehicle_markers_cdr(vehicles, [], stamp))
         sent += 7
         if end:
             values = episode_values(self.episode, self.episode_steps, 1.5, 1, 24.0, imposed_brake=0.0)
             pub[n["episode"]].publish(make_episode_event(stamp, EPISODE_TIME_LIMIT, values))
-            pub[n["metrics"]].publish(metrics_to_diagnostics({"charts/episodic_return": 1.5,
-                                                              "losses/td_loss": 0.01 * k}, stamp))
+            pub[n["metrics"]].publish(
+                metrics_to_diagnostics({"charts/episodic_return": 1.5, "losses/td_loss": 0.01 * k}, stamp)
+            )
             sent += 2
         if k % 200 == 199:
             pub[n["diag"]].publish(make_diagnostics(stamp, "bridge", {"sim_steps": k, "steps_per_s": 90.0}))
@@ -131,8 +185,16 @@ def run_recorder_process(args: argparse.Namespace) -> int:
     repo = Path(__file__).resolve().parents[1]
     rclpy.init()
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "der_ros.nodes.recorder_node", "--ros-args", "--params-file",
-               str(repo / "config/graph.params.yaml"), "-p", f"output:={tmp}/bag"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "der_ros.nodes.recorder_node",
+            "--ros-args",
+            "--params-file",
+            str(repo / "config/graph.params.yaml"),
+            "-p",
+            f"output:={tmp}/bag",
+        ]
         child = subprocess.Popen(cmd, cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         pub_node = rclpy.create_node("recorder_memory_publisher")
         traffic = GraphTraffic(pub_node, args.episode_steps)
@@ -159,7 +221,9 @@ def run_recorder_process(args: argparse.Namespace) -> int:
         child.send_signal(signal.SIGINT)
         child.wait(timeout=60)
         meta = yaml.safe_load((Path(tmp) / "bag/metadata.yaml").read_text())["rosbag2_bagfile_information"]
-        recorded = sum(t["message_count"] for t in meta["topics_with_message_count"] if t["topic_metadata"]["name"] != "/tf")
+        recorded = sum(
+            t["message_count"] for t in meta["topics_with_message_count"] if t["topic_metadata"]["name"] != "/tf"
+        )
     pub_node.destroy_node()
     rclpy.try_shutdown()
     slope = slope_per_1000(samples)
@@ -167,10 +231,23 @@ def run_recorder_process(args: argparse.Namespace) -> int:
     print(f"recorder process: recorded {recorded} messages of {published} published (+ /tf); {len(samples)} RSS "
           f"samples over {args.messages} steps after 2,000 of warm-up, {samples[0][1] / 1024:.1f} -> "
           f"{samples[-1][1] / 1024:.1f} MB: {slope:+.1f} kB per 1,000 steps {env or ''}")  # fmt: skip
-    print(json.dumps({"bench": "recorder_memory", "process": True, "steps": args.messages, "rate": args.rate,
-                      "episode_steps": args.episode_steps, "env": env, "recorded": recorded, "published": published,
-                      "rss_first_mb": round(samples[0][1] / 1024, 1), "rss_last_mb": round(samples[-1][1] / 1024, 1),
-                      "kb_per_1000_steps": round(slope, 1)}))
+    print(
+        json.dumps(
+            {
+                "bench": "recorder_memory",
+                "process": True,
+                "steps": args.messages,
+                "rate": args.rate,
+                "episode_steps": args.episode_steps,
+                "env": env,
+                "recorded": recorded,
+                "published": published,
+                "rss_first_mb": round(samples[0][1] / 1024, 1),
+                "rss_last_mb": round(samples[-1][1] / 1024, 1),
+                "kb_per_1000_steps": round(slope, 1),
+            }
+        )
+    )
     return 0
 
 
@@ -191,8 +268,12 @@ def slope_per_1000(points: list[tuple[int, int]]) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--messages", type=int, default=4000,
-                    help="odom + chatter pairs measured (default 4000); decision steps with --graph")
+    ap.add_argument(
+        "--messages",
+        type=int,
+        default=4000,
+        help="odom + chatter pairs measured (default 4000); decision steps with --graph",
+    )
     ap.add_argument("--top", type=int, default=5, help="largest growths shown (default 5)")
     ap.add_argument("--graph", action="store_true", help="publish what a der graph run publishes (docstring)")
     ap.add_argument("--episode-steps", type=int, default=5, help="--graph: decision steps per episode (default 5)")
@@ -224,7 +305,9 @@ def main() -> int:
         if args.graph:
             import yaml
 
-            graph_params = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/graph.params.yaml").read_text())
+            graph_params = yaml.safe_load(
+                (Path(__file__).resolve().parents[1] / "config/graph.params.yaml").read_text()
+            )
             rec_params = dict(graph_params["recorder_node"]["ros__parameters"], output=f"{tmp}/bag")
             rec = RecorderNode(parameter_overrides=[Parameter(k, value=v) for k, v in rec_params.items()
                                                     if k != "use_sim_time"])  # fmt: skip
