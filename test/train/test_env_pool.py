@@ -81,6 +81,7 @@ def test_two_envs_are_deterministic_and_learn_from_both(tmp_path: Path) -> None:
     assert len(firsts) == 2
 
 
+@pytest.mark.slow  # three N = 2 runs (~9 s): full suite only
 def test_two_envs_resume_exactly(tmp_path: Path) -> None:
     """The pool's state (each worker's pickled CartPole, its observation, RNG, step count and the results
     not yet learnt, the behaviour snapshots) goes into the checkpoint; the resumed run is the full run."""
@@ -96,6 +97,7 @@ def test_two_envs_resume_exactly(tmp_path: Path) -> None:
     assert same_weights(tmp_path / "split", full)
 
 
+@pytest.mark.slow  # three N = 2 runs with checkpoints (~10 s): full suite only
 def test_two_envs_ctrl_c_writes_a_checkpoint_that_resumes_exactly(tmp_path: Path) -> None:
     full = run(tmp_path, "full", 800, **{"train.num_envs": 2})
     cfg = load_experiment_config(CARTPOLE, small_overrides(800, **{"train.num_envs": 2}))
