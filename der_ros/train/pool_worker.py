@@ -40,7 +40,7 @@ __all__ = ["WorkerPlan", "serve_pool", "snapshot_blob", "snapshot_tensors", "blo
 
 def snapshot_blob(net: torch.nn.Module) -> bytes:
     """A network's weights as bytes (pickled numpy arrays: cheap to make, exact, no torch needed to read)."""
-    return pickle.dumps({k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}, protocol=5)
+    return blob_of_tensors(net.state_dict())
 
 
 def snapshot_tensors(blob: bytes) -> dict[str, torch.Tensor]:
